@@ -1,0 +1,156 @@
+"""Command line (``spec/contracts.md``): thin; parses, delegates, shows progress.
+
+Exit status: 0 success, 2 bad usage or bad input (one line naming the file and
+what is wrong), 1 internal failure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from . import __version__
+from .errors import ImupipeError
+
+log = logging.getLogger("imupipe")
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="imupipe", description="Calibrate MEMS IMUs from recorded sessions.")
+    p.add_argument("--version", action="version", version=f"imupipe {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def common(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--quiet", action="store_true", help="no progress display")
+
+    sp = sub.add_parser("ingest", help="read a session into canonical Arrow tables")
+    sp.add_argument("session", type=Path)
+    sp.add_argument("--out", type=Path, default=None, help="output directory (default: ./<session-stem>.tables)")
+    common(sp)
+
+    sp = sub.add_parser("run", help="calibrate one or more sessions")
+    sp.add_argument("sessions", type=Path, nargs="+", metavar="SESSION")
+    sp.add_argument("--pipeline", type=Path, default=None, help="pipeline TOML (default: the built-in one)")
+    sp.add_argument("--out", type=Path, default=Path("imupipe-out"))
+    common(sp)
+
+    sp = sub.add_parser("batch", help="calibrate every session under directories or globs")
+    sp.add_argument("inputs", nargs="+", metavar="GLOB_OR_DIR")
+    sp.add_argument("--pipeline", type=Path, default=None)
+    sp.add_argument("--out", type=Path, default=Path("imupipe-out"))
+    sp.add_argument("--executor", default="local", help="local (process pool) or dask (extra imupipe[dask])")
+    sp.add_argument("--jobs", type=int, default=None, help="parallel jobs (default: number of cores)")
+    common(sp)
+
+    sp = sub.add_parser("status", help="say which stages of a pipeline are stale and why")
+    sp.add_argument("sessions", type=Path, nargs="*", metavar="SESSION")
+    sp.add_argument("--pipeline", type=Path, default=None)
+    sp.add_argument("--out", type=Path, default=Path("imupipe-out"))
+
+    sp = sub.add_parser("simulate", help="write a simulated calibration session with known truth")
+    sp.add_argument("protocol")
+    sp.add_argument("--effect", action="append", default=[], metavar="NAME=JSON",
+                    help='an omitted-physics effect, e.g. --effect \'lever_arm={"r_m": [0.05, 0, 0]}\'')
+    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument("--out", type=Path, default=None, help="output .mcap or .csv (default: <protocol>.mcap)")
+    common(sp)
+
+    sub.add_parser("plugins", help="list every plugin and what it provides")
+    return p
+
+
+def _parse_effects(items: list[str]) -> dict[str, dict]:
+    effects = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep:
+            raise ImupipeError(f"--effect {item!r}: expected NAME=JSON, e.g. lever_arm={{\"r_m\": [0.05, 0, 0]}}")
+        try:
+            params = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ImupipeError(f"--effect {name}: parameters are not valid JSON ({exc.msg} at column {exc.colno})") from None
+        if not isinstance(params, dict):
+            raise ImupipeError(f"--effect {name}: parameters must be a JSON object")
+        effects[name] = params
+    return effects
+
+
+def _cmd_ingest(args) -> int:
+    from .ingest import read_recording, write_recording
+    from .plugins import make_registry
+
+    registry = make_registry()
+    recording = read_recording(args.session, registry)
+    out = args.out or Path(f"{args.session.stem}.tables")
+    for path in write_recording(recording, out):
+        print(path)
+    return 0
+
+
+def _cmd_plugins(args) -> int:
+    from .plugins import make_registry
+
+    registry = make_registry()
+    rows: dict[tuple[str, str, str], list[str]] = {}
+    for c in registry.all():
+        rows.setdefault((c.plugin, c.distribution, c.dist_version), []).append(f"{c.kind[:-1]}:{c.name}")
+    for (plugin, dist, ver), provides in sorted(rows.items()):
+        print(f"{plugin}  ({dist or '-'} {ver or ''})".rstrip())
+        print(f"    {', '.join(provides)}")
+    return 0
+
+
+def _cmd_run(args) -> int:
+    from .pipeline.api import run_sessions
+
+    run_sessions(args.sessions, pipeline=args.pipeline, out=args.out, quiet=args.quiet)
+    return 0
+
+
+def _cmd_batch(args) -> int:
+    from .pipeline.api import batch
+
+    failures = batch(args.inputs, pipeline=args.pipeline, out=args.out, executor=args.executor,
+                     jobs=args.jobs, quiet=args.quiet)
+    return 2 if failures else 0
+
+
+def _cmd_status(args) -> int:
+    from .pipeline.api import status
+
+    print(status(args.sessions, pipeline=args.pipeline, out=args.out))
+    return 0
+
+
+def _cmd_simulate(args) -> int:
+    from .sim.api import simulate
+
+    out = args.out or Path(f"{args.protocol}.mcap")
+    for path in simulate(args.protocol, effects=_parse_effects(args.effect), seed=args.seed, out=out,
+                         quiet=args.quiet):
+        print(path)
+    return 0
+
+
+COMMANDS = {"ingest": _cmd_ingest, "run": _cmd_run, "batch": _cmd_batch, "status": _cmd_status,
+            "simulate": _cmd_simulate, "plugins": _cmd_plugins}
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="imupipe: %(levelname)s: %(message)s")
+    try:
+        return COMMANDS[args.command](args)
+    except ImupipeError as exc:
+        print(f"imupipe {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("imupipe: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

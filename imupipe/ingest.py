@@ -1,0 +1,100 @@
+"""Read any recording a registered reader accepts and check its canonical tables.
+
+Checks that apply to every format live here, once: each stream is non-empty,
+claims its schema, has strictly increasing time and finite values.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from . import schemas
+from .components import Recording
+from .errors import ReaderError, SchemaError
+from .io import write_arrow
+from .plugins import Registry
+
+STREAMS = ("accel", "gyro", "mag", "temperature")
+
+
+def choose_reader(path: Path, registry: Registry, name: str | None = None):
+    """The reader for ``path``: ``name`` if given, else the one that claims the file."""
+    if name is not None:
+        return registry.get("readers", name)
+    if not path.exists():
+        raise ReaderError(f"{path}: no such file")
+    if path.is_dir():
+        raise ReaderError(f"{path}: is a directory; give a recording file or a session.toml")
+    with open(path, "rb") as f:
+        head = f.read(64)
+    readers = {n: registry.get("readers", n) for n in registry.names("readers")}
+    chosen = registry.pm.hook.imupipe_choose_reader(path=path, head=head, readers=readers)
+    if chosen is None:
+        if not head:
+            raise ReaderError(f"{path}: the file is empty")
+        raise ReaderError(
+            f"{path}: no reader accepts this file (known readers: {', '.join(sorted(readers))}); "
+            "for a recording split over several files, write a session.toml manifest"
+        )
+    return registry.get("readers", chosen)
+
+
+def read_recording(path: Path | str, registry: Registry, reader: str | None = None) -> Recording:
+    """Read and check a recording."""
+    path = Path(path)
+    recording = choose_reader(path, registry, reader).read(path)
+    if not recording.devices or not any(recording.devices.values()):
+        raise ReaderError(f"{path}: holds no IMU data (no accelerometer, gyroscope or magnetometer stream)")
+    for device, streams in recording.devices.items():
+        for stream, table in streams.items():
+            check_stream(table, stream, f"{path} [{device}/{stream}]")
+    return recording
+
+
+def check_stream(table: pa.Table, stream: str, where: str) -> None:
+    """Raise ``ReaderError`` if a sample table is empty, unordered or has non-finite values."""
+    try:
+        schemas.check(table, stream, where)
+    except SchemaError as exc:
+        raise ReaderError(str(exc)) from None
+    if table.num_rows == 0:
+        raise ReaderError(f"{where}: stream has no samples")
+    t = table.column("t_ns").to_numpy()
+    dt = np.diff(t)
+    if (dt < 0).any():
+        i = int(np.argmax(dt < 0))
+        raise ReaderError(
+            f"{where}: time goes backwards at sample {i + 1} ({t[i]} ns -> {t[i + 1]} ns); "
+            "sort the recording or fix the logger's clock"
+        )
+    if (dt == 0).any():
+        i = int(np.argmax(dt == 0))
+        raise ReaderError(f"{where}: duplicate time stamp {t[i]} ns at samples {i} and {i + 1}")
+    for name in table.column_names:
+        if name == "t_ns" or not pa.types.is_floating(table.schema.field(name).type):
+            continue
+        values = table.column(name).to_numpy(zero_copy_only=False)
+        bad = ~np.isfinite(values)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise ReaderError(f"{where}: non-finite value {values[i]} in column {name!r} at sample {i}")
+
+
+def write_recording(recording: Recording, out_dir: Path) -> list[Path]:
+    """Write every canonical table as Arrow IPC: ``out_dir/<device>/<stream>.arrow``."""
+    written = []
+    for device, streams in recording.devices.items():
+        for stream, table in streams.items():
+            path = Path(out_dir) / safe_name(device) / f"{stream}.arrow"
+            write_arrow(path, table)
+            written.append(path)
+    return written
+
+
+def safe_name(name: str) -> str:
+    """A device or topic name as a file-system name (``/imu0/data`` -> ``imu0_data``)."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "imu"

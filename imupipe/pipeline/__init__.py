@@ -1,0 +1,1 @@
+"""Pipelines: config parsing, DAG, content-addressed cache, runner, executors."""

@@ -1,0 +1,9 @@
+"""Built-in readers: every submodule lists its components in ``COMPONENTS``."""
+
+from ..hookspecs import hookimpl
+from ..registration import register_package
+
+
+@hookimpl
+def imupipe_register_readers(register):
+    register_package(__name__, register)
