@@ -40,6 +40,9 @@ class Recording:
 
     source: str
     devices: Mapping[str, Mapping[str, pa.Table]]
+    # Session-level facts a reader knows beyond the tables, e.g. ``"sections"``
+    # (named protocol sections from a session manifest, see docs/session-manifest.md).
+    meta: Mapping[str, Any] = field(default_factory=dict)
 
     def device(self, name: str | None = None) -> Mapping[str, pa.Table]:
         """The streams of one device; with no name, the only one (or an error naming all)."""

@@ -1,10 +1,109 @@
-"""Executors for batches: local process pool, Dask (extra ``imupipe[dask]``)."""
+"""Executors for batches: a local process pool, and Dask (extra ``imupipe[dask]``).
+
+``map(fn, items, jobs, on_result=None)`` applies a module-level (picklable)
+``fn`` to every item and returns the results in order; ``on_result(i, result)``
+is called as each finishes (progress). ``fn`` is expected not to raise; if a
+worker dies anyway, ``fn_failed(item, exc)`` of the batch turns it into a result.
+"""
 
 from __future__ import annotations
 
+import logging
+import os
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from typing import Any
+
+from ..errors import require
 from ..hookspecs import hookimpl
 
-COMPONENTS: list = []
+log = logging.getLogger("imupipe.pipeline")
+
+OnResult = Callable[[int, Any], None] | None
+SCHEDULER_ENV = "IMUPIPE_DASK_SCHEDULER"
+
+
+def _default_jobs(jobs: int | None) -> int:
+    return max(1, jobs if jobs else (os.cpu_count() or 1))
+
+
+def _crashed(item: Any, exc: BaseException) -> Any:
+    """The result a job that died in its worker stands for (the item names its failure)."""
+    failed = getattr(item, "failed", None)
+    if failed is None:
+        raise exc
+    return failed(f"worker died: {type(exc).__name__}: {exc}")
+
+
+class LocalExecutor:
+    """``concurrent.futures.ProcessPoolExecutor``; one job (or ``jobs=1``) runs inline."""
+
+    name = "local"
+
+    def map(self, fn: Callable[[Any], Any], items: list[Any], jobs: int | None,
+            on_result: OnResult = None) -> list[Any]:
+        jobs = min(_default_jobs(jobs), max(1, len(items)))
+        results: list[Any] = [None] * len(items)
+        if jobs == 1:
+            for i, item in enumerate(items):
+                results[i] = fn(item)
+                if on_result:
+                    on_result(i, results[i])
+            return results
+        with ProcessPoolExecutor(max_workers=jobs) as pool:
+            futures = {pool.submit(fn, item): i for i, item in enumerate(items)}
+            for future in as_completed(futures):
+                i = futures[future]
+                try:
+                    results[i] = future.result()
+                except Exception as exc:  # noqa: BLE001 - a worker process died (BrokenProcessPool)
+                    results[i] = _crashed(items[i], exc)
+                if on_result:
+                    on_result(i, results[i])
+        return results
+
+
+class DaskExecutor:
+    """``dask.distributed``: the scheduler at ``$IMUPIPE_DASK_SCHEDULER``, else a LocalCluster.
+
+    The local cluster has ``jobs`` worker processes of one thread each and is
+    closed when the batch ends.
+    """
+
+    name = "dask"
+
+    def map(self, fn: Callable[[Any], Any], items: list[Any], jobs: int | None,
+            on_result: OnResult = None) -> list[Any]:
+        distributed = require("distributed", "dask")
+        address = os.environ.get(SCHEDULER_ENV)
+        cluster = None
+        if address:
+            client = distributed.Client(address)
+        else:
+            cluster = distributed.LocalCluster(n_workers=_default_jobs(jobs), threads_per_worker=1,
+                                               processes=True, dashboard_address=None,
+                                               silence_logs=logging.ERROR)
+            client = distributed.Client(cluster)
+        try:
+            futures = client.map(fn, items, pure=False)
+            index = {f.key: i for i, f in enumerate(futures)}
+            results: list[Any] = [None] * len(items)
+            for future in distributed.as_completed(futures):
+                i = index[future.key]
+                try:
+                    results[i] = future.result()
+                except Exception as exc:  # noqa: BLE001 - the worker died or could not unpickle
+                    results[i] = _crashed(items[i], exc)
+                if on_result:
+                    on_result(i, results[i])
+            return results
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+
+
+COMPONENTS: list = [LocalExecutor(), DaskExecutor()]
 
 
 @hookimpl

@@ -1,0 +1,181 @@
+"""Ingest benchmark: imupipe's MCAP reader against the mcap_ros2 decoder and raw zstd.
+
+Writes a ROS 2 MCAP of >= 1,000,000 messages (one IMU: Imu at 1 kHz,
+MagneticField at 100 Hz, Temperature at 10 Hz, interleaved by time, zstd
+chunks of 1 MiB) into a temporary directory, then prints, from this one run:
+
+* imupipe's ingest rate (``ingest.read_recording``: reader + stream checks),
+* the mcap_ros2 reference decoder's rate (timed on the first messages of the
+  same file and extrapolated; the output says how many),
+* the raw zstd decompression rate of the same chunks (messages/s and MB/s),
+* the ratios (targets: >= 100x the reference, >= 40 % of decompression),
+* peak memory of one ingest (peak RSS - RSS before in a fresh process, and the
+  tracemalloc peak) against the size of the decoded arrays (target <= 3x).
+
+Usage: ``python bench/ingest.py [--seconds 910] [--reference-messages 50000]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import zstandard
+
+from imupipe.components import Recording
+from imupipe.writers.mcap import write_mcap
+
+RATES_HZ = {"imu": 1000, "mag": 100, "temperature": 10}
+
+# Runs in a fresh interpreter so that max RSS measures one ingest and nothing else.
+MEMORY_PROBE = """
+import json, sys, tracemalloc
+from imupipe.ingest import read_recording
+from imupipe.plugins import make_registry
+
+def status_kb(key):  # VmRSS: resident now; VmHWM: peak resident of this process image
+    # (ru_maxrss would not do: Linux carries it over from the parent across fork + exec)
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) * 1024 for line in f if line.startswith(key))
+
+registry = make_registry()
+before = status_kb("VmRSS:")
+rec = read_recording(sys.argv[1], registry)
+after = status_kb("VmHWM:")
+arrays = sum(t.nbytes for s in rec.devices.values() for t in s.values())
+del rec
+tracemalloc.start()
+rec = read_recording(sys.argv[1], registry)
+peak = tracemalloc.get_traced_memory()[1]
+print(json.dumps({"rss_delta": after - before, "tracemalloc_peak": peak, "arrays": arrays}))
+"""
+
+
+def make_recording(seconds: float, seed: int = 0) -> Recording:
+    """One IMU at rest with noise: accel m/s^2, gyro rad/s, mag T, temperature degC."""
+    rng = np.random.default_rng(seed)
+    t0 = 1_700_000_000_000_000_000
+
+    def stamps(rate):
+        return t0 + np.arange(int(seconds * rate), dtype=np.int64) * (1_000_000_000 // rate)
+
+    def triad(t, mean, sd):
+        return pa.table({"t_ns": t, **{c: m + sd * rng.standard_normal(len(t))
+                                       for c, m in zip("xyz", mean)}})
+
+    t_imu, t_mag, t_temp = (stamps(RATES_HZ[k]) for k in ("imu", "mag", "temperature"))
+    streams = {
+        "accel": triad(t_imu, (0.0, 0.0, 9.81), 0.02),
+        "gyro": triad(t_imu, (0.0, 0.0, 0.0), 0.001),
+        "mag": triad(t_mag, (2e-5, 0.0, -4e-5), 1e-7),
+        "temperature": pa.table({"t_ns": t_temp,
+                                 "temperature": 30.0 + 0.01 * rng.standard_normal(len(t_temp))}),
+    }
+    return Recording(source="bench", devices={"imu": streams})
+
+
+def time_imupipe(path: Path, repeats: int = 3) -> tuple[float, int]:
+    from imupipe.ingest import read_recording
+    from imupipe.plugins import make_registry
+
+    registry = make_registry()
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        rec = read_recording(path, registry)
+        best = min(best, time.perf_counter() - start)
+    rows = sum(t.num_rows for s in rec.devices.values() for t in s.values())
+    return best, rows
+
+
+def time_reference(path: Path, limit: int) -> tuple[float, int]:
+    """Seconds to decode the first ``limit`` messages with mcap_ros2, and how many it decoded."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    count = 0
+    with open(path, "rb") as f:
+        start = time.perf_counter()
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _ in reader.iter_decoded_messages(log_time_order=False):
+            count += 1
+            if count >= limit:
+                break
+        return time.perf_counter() - start, count
+
+
+def time_decompression(path: Path, repeats: int = 3) -> tuple[float, int]:
+    """Best seconds to zstd-decompress every chunk (data already in memory), uncompressed bytes."""
+    from mcap.reader import SeekingReader
+
+    with open(path, "rb") as f:
+        summary = SeekingReader(f).get_summary()
+        blobs = []
+        for index in summary.chunk_indexes:
+            f.seek(index.chunk_start_offset + 1 + 8 + 8 + 8 + 8 + 4)
+            clen = int.from_bytes(f.read(4), "little")
+            f.seek(clen + 8, 1)
+            blobs.append((f.read(index.compressed_size), index.uncompressed_size))
+    dctx = zstandard.ZstdDecompressor()
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        total = sum(len(dctx.decompress(b, max_output_size=n)) for b, n in blobs)
+        best = min(best, time.perf_counter() - start)
+    return best, total
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=910.0, help="recording length (910 s: 1.01 M msgs)")
+    ap.add_argument("--reference-messages", type=int, default=20_000)
+    args = ap.parse_args()
+
+    with tempfile.TemporaryDirectory(prefix="imupipe-bench-") as tmp:
+        path = Path(tmp) / "bench.mcap"
+        recording = make_recording(args.seconds)
+        n_msgs = sum(int(args.seconds * r) for r in RATES_HZ.values())
+        start = time.perf_counter()
+        write_mcap(path, recording)
+        write_s = time.perf_counter() - start
+        del recording
+        size_mb = path.stat().st_size / 1e6
+        print(f"file: {n_msgs:,} messages (Imu {RATES_HZ['imu']} Hz, MagneticField "
+              f"{RATES_HZ['mag']} Hz, Temperature {RATES_HZ['temperature']} Hz), {size_mb:.1f} MB "
+              f"zstd, written in {write_s:.1f} s")
+
+        ours_s, rows = time_imupipe(path)
+        ours = n_msgs / ours_s
+        ref_s, ref_n = time_reference(path, args.reference_messages)
+        ref = ref_n / ref_s
+        dec_s, dec_bytes = time_decompression(path)
+        dec = n_msgs / dec_s
+        print(f"imupipe ingest (read_recording, best of 3): {ours_s:.3f} s -> {ours:,.0f} msg/s "
+              f"({rows:,} table rows)")
+        print(f"mcap_ros2 reference decoder: {ref_n:,} messages in {ref_s:.3f} s -> {ref:,.0f} msg/s "
+              f"(timed on the first {ref_n:,} messages, extrapolated: {n_msgs / ref:.1f} s for all)")
+        print(f"raw zstd decompression of the same chunks (best of 3): {dec_s:.3f} s -> "
+              f"{dec:,.0f} msg/s equivalent, {dec_bytes / dec_s / 1e6:,.0f} MB/s "
+              f"({dec_bytes / 1e6:.0f} MB uncompressed)")
+        print(f"ratio imupipe / reference:      {ours / ref:8.1f}x   (target >= 100x)")
+        print(f"ratio imupipe / decompression:  {ours / dec:8.1%}   (target >= 40 %)")
+
+        probe = subprocess.run([sys.executable, "-c", MEMORY_PROBE, str(path)],
+                               capture_output=True, text=True, check=True)
+        mem = json.loads(probe.stdout)
+        arrays = mem["arrays"]
+        print(f"decoded arrays: {arrays / 1e6:.1f} MB; peak during one ingest (fresh process): "
+              f"peak RSS - RSS before {mem['rss_delta'] / 1e6:.1f} MB = {mem['rss_delta'] / arrays:.2f}x, "
+              f"tracemalloc peak {mem['tracemalloc_peak'] / 1e6:.1f} MB = "
+              f"{mem['tracemalloc_peak'] / arrays:.2f}x   (target <= 3x)")
+
+
+if __name__ == "__main__":
+    main()

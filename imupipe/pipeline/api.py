@@ -1,0 +1,301 @@
+"""What the command line calls: ``run_sessions``, ``batch``, ``status``.
+
+Output layout (``docs/pipelines.md``)::
+
+    <out>/.cache/                    content-addressed stage outputs, shared by all sessions
+    <out>/<session-id>/run.json      run manifest: each stage's key parts, status, outputs
+    <out>/<session-id>/calibration.json
+    <out>/<session-id>/...           files of the "report" exporter, if one is registered
+
+``<session-id>`` is the file's stem (for a ``session.toml`` manifest, its
+folder's name), made unique with a short hash when two sessions share it.
+"""
+
+from __future__ import annotations
+
+import glob
+import hashlib
+import logging
+import traceback
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .. import __version__
+from ..errors import ImupipeError
+from ..plugins import Registry, make_registry
+from ..progress import progress
+from .cache import Cache, read_manifest
+from .config import load_pipeline
+from .dag import Pipeline
+from .runner import SessionRun, run_session
+from .status import render, stage_states
+
+log = logging.getLogger("imupipe.pipeline")
+
+CACHE_DIR = ".cache"
+MANIFEST = "run.json"
+CALIBRATION = "calibration.json"
+
+
+@dataclass(frozen=True)
+class RegistrySpec:
+    """How a worker process makes its registry: plugin modules by import name, entry points or not."""
+
+    plugins: tuple[str, ...] = ()
+    entry_points: bool = True
+
+    def make(self) -> Registry:
+        import importlib
+
+        return make_registry([importlib.import_module(m) for m in self.plugins],
+                             entry_points_too=self.entry_points)
+
+
+DEFAULT_SPEC = RegistrySpec()  # what ``imupipe batch`` workers load: every installed plugin
+
+
+@dataclass(frozen=True)
+class Job:
+    """One session of a batch (picklable)."""
+
+    session: str
+    session_id: str
+    pipeline: str
+    out: str
+    registry: RegistrySpec = field(default_factory=RegistrySpec)
+
+    def failed(self, reason: str) -> JobResult:
+        return JobResult(self.session, "failed", reason)
+
+
+@dataclass(frozen=True)
+class JobResult:
+    session: str
+    status: str  # ok | failed
+    detail: str  # the calibration.json written, or why the session failed
+
+
+# --------------------------------------------------------------------------- one session
+
+
+def session_ids(sessions: Sequence[Path]) -> list[str]:
+    """A folder name per session: the stem (a manifest's folder name), unique within the list."""
+    def stem(p: Path) -> str:
+        return p.parent.resolve().name if p.name.lower() == "session.toml" else p.stem
+
+    stems = [stem(Path(s)) for s in sessions]
+    out = []
+    for s, path in zip(stems, sessions, strict=True):
+        if stems.count(s) > 1:
+            s = f"{s}-{hashlib.sha256(str(Path(path).resolve()).encode()).hexdigest()[:8]}"
+        out.append(s)
+    return out
+
+
+def process_session(session: Path, session_id: str, pipeline: Pipeline, registry: Registry,
+                    out: Path, on_stage=None) -> Path | None:
+    """Run ``pipeline`` on one session and export; return the calibration.json written (if any).
+
+    On failure nothing is left claiming success: the session's calibration.json is removed.
+    """
+    run_dir = Path(out) / session_id
+    calibration = run_dir / CALIBRATION
+    try:
+        run = run_session(session, pipeline, registry, Cache(Path(out) / CACHE_DIR),
+                          run_dir / MANIFEST, on_stage)
+        return _export(run, registry, run_dir)
+    except BaseException:
+        calibration.unlink(missing_ok=True)
+        raise
+
+
+def _export(run: SessionRun, registry: Registry, run_dir: Path) -> Path | None:
+    pipeline = run.pipeline
+    context = {"session": str(run.session), "pipeline": pipeline.name, "imupipe_version": __version__,
+               "skipped": run.skipped}
+    written = None
+    if pipeline.export_calibration:
+        tables = {str(r): t for r in pipeline.export_calibration if (t := run.table(r)) is not None}
+        exporter = registry.get("exporters", "calibration_json")
+        written = exporter.export(tables, context, run_dir)[0]
+    if pipeline.export_reports:
+        if "report" in registry.names("exporters"):
+            tables = {str(r): t for r in pipeline.export_reports if (t := run.table(r)) is not None}
+            registry.get("exporters", "report").export(tables, context, run_dir)
+        else:
+            log.info("no 'report' exporter is registered; skipping the reports of %s", run.session)
+    return written
+
+
+# --------------------------------------------------------------------------- run
+
+
+def run_sessions(sessions: list[Path], pipeline: Path | None = None, out: Path = Path("imupipe-out"),
+                 quiet: bool = False, *, registry: Registry | None = None) -> list[Path]:
+    """``imupipe run``: every session in turn; a failing session does not stop the others.
+
+    Returns the calibration files written; raises the first session's error
+    (naming how many failed) once all have been tried.
+    """
+    registry = registry or make_registry()
+    spec = load_pipeline(pipeline, registry)  # bad config: fail before reading any data
+    sessions = [Path(s) for s in sessions]
+    written, failures = [], []
+    with progress(quiet) as p:
+        all_task = p.add_task("sessions", total=len(sessions))
+        stage_task = p.add_task("stages", total=len(spec.nodes))
+        for session, sid in zip(sessions, session_ids(sessions), strict=True):
+            p.update(stage_task, completed=0, description=f"{sid}")
+            try:
+                path = process_session(session, sid, spec, registry, Path(out),
+                                       on_stage=lambda *_: p.advance(stage_task))
+            except ImupipeError as exc:
+                failures.append(exc)
+                if len(sessions) > 1:
+                    log.error("%s", exc)
+            else:
+                if path is not None:
+                    written.append(path)
+            p.advance(all_task)
+    if failures:
+        first = failures[0]
+        if len(sessions) > 1:
+            first.args = (f"{first} ({len(failures)} of {len(sessions)} sessions failed)",)
+        raise first
+    return written
+
+
+# --------------------------------------------------------------------------- batch
+
+
+def run_job(job: Job) -> JobResult:
+    """Worker: one session in its own process; never raises (a failure is a result)."""
+    try:
+        registry = job.registry.make()
+        spec = load_pipeline(Path(job.pipeline), registry)
+        path = process_session(Path(job.session), job.session_id, spec, registry, Path(job.out))
+        return JobResult(job.session, "ok", str(path) if path else "(no calibration exported)")
+    except ImupipeError as exc:
+        return job.failed(str(exc))
+    except Exception as exc:  # noqa: BLE001 - the batch reports it and goes on with the others
+        log.debug("%s", traceback.format_exc())
+        return job.failed(f"internal error: {type(exc).__name__}: {exc}")
+
+
+def expand_inputs(inputs: Sequence[str], registry: Registry, out: Path | None = None) -> list[Path]:
+    """Session files from directories and globs.
+
+    A directory contributes every file a registered reader claims by suffix,
+    recursively, except that a folder holding a ``session.toml`` is one session
+    (its data files are not sessions of their own). ``out`` is never searched.
+    """
+    suffixes = {s.lower() for n in registry.names("readers")
+                for s in getattr(registry.get("readers", n), "suffixes", ())}
+    skip = Path(out).resolve() if out is not None else None
+    found: list[Path] = []
+    for item in inputs:
+        matches = [Path(m) for m in sorted(glob.glob(item, recursive=True))] or \
+            ([Path(item)] if Path(item).exists() else [])
+        if not matches:
+            raise ImupipeError(f"{item}: no such file, directory or matching glob")
+        for m in matches:
+            found += _walk(m, suffixes, skip) if m.is_dir() else [m]
+    unique = list(dict.fromkeys(p.resolve() for p in found))
+    if not unique:
+        raise ImupipeError(f"{', '.join(inputs)}: no session files found (suffixes read: "
+                           f"{', '.join(sorted(suffixes)) or 'none'})")
+    return unique
+
+
+def _walk(folder: Path, suffixes: set[str], skip: Path | None) -> list[Path]:
+    if skip is not None and folder.resolve() == skip:
+        return []
+    manifest = folder / "session.toml"
+    if manifest.is_file():
+        return [manifest]
+    out = []
+    for p in sorted(folder.iterdir()):
+        if p.name.startswith("."):
+            continue
+        if p.is_dir():
+            out += _walk(p, suffixes, skip)
+        elif p.suffix.lower() in suffixes:
+            out.append(p)
+    return out
+
+
+def batch(inputs: list[str], pipeline: Path | None = None, out: Path = Path("imupipe-out"),
+          executor: str = "local", jobs: int | None = None, quiet: bool = False, *,
+          plugins: RegistrySpec | None = None) -> list[JobResult]:
+    """``imupipe batch``: each session an independent job; returns the failures.
+
+    Prints a summary table (session, status, output or reason).
+    """
+    spec = plugins or DEFAULT_SPEC
+    registry = spec.make()
+    pipeline_obj = load_pipeline(pipeline, registry)  # bad config: fail before any job starts
+    runner = registry.get("executors", executor)
+    sessions = expand_inputs(inputs, registry, out)
+    jobs_list = [Job(str(s), sid, str(pipeline_obj.path.resolve()), str(Path(out).resolve()), spec)
+                 for s, sid in zip(sessions, session_ids(sessions), strict=True)]
+    with progress(quiet) as p:
+        task = p.add_task(f"sessions ({executor})", total=len(jobs_list))
+        kwargs = {"on_result": lambda *_: p.advance(task)} if _takes_on_result(runner) else {}
+        results = runner.map(run_job, jobs_list, jobs, **kwargs)
+    print(summary(results))
+    return [r for r in results if r.status != "ok"]
+
+
+def _takes_on_result(executor) -> bool:
+    import inspect
+
+    try:
+        return "on_result" in inspect.signature(executor.map).parameters
+    except (TypeError, ValueError):
+        return False
+
+
+def summary(results: Sequence[JobResult]) -> str:
+    """A plain table: session, status, output or reason."""
+    rows = [("session", "status", "output / reason")] + [(r.session, r.status, r.detail) for r in results]
+    w0, w1 = (max(len(r[i]) for r in rows) for i in (0, 1))
+    failed = sum(r.status != "ok" for r in results)
+    lines = [f"{a:<{w0}}  {b:<{w1}}  {c}" for a, b, c in rows]
+    lines.append(f"{len(results) - failed} ok, {failed} failed")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- status
+
+
+def status(sessions: list[Path], pipeline: Path | None = None, out: Path = Path("imupipe-out"), *,
+           registry: Registry | None = None) -> str:
+    """``imupipe status``: per session, which stages are stale and why; nothing runs.
+
+    With no sessions, those recorded in ``out`` (their run manifests).
+    """
+    registry = registry or make_registry()
+    spec = load_pipeline(pipeline, registry)
+    out = Path(out)
+    sessions = [Path(s) for s in sessions]
+    if sessions:
+        pairs = list(zip(sessions, session_ids(sessions), strict=True))
+    else:
+        pairs = []
+        for manifest_path in sorted(out.glob(f"*/{MANIFEST}")):
+            manifest = read_manifest(manifest_path)
+            if manifest and manifest.get("session"):
+                pairs.append((Path(manifest["session"]), manifest_path.parent.name))
+        if not pairs:
+            return f"{out}: no sessions have been run here; give SESSION files"
+    cache = Cache(out / CACHE_DIR)
+    blocks = []
+    for session, sid in pairs:
+        manifest = read_manifest(out / sid / MANIFEST)
+        states = stage_states(spec, session, manifest, cache)
+        blocks.append(render(session, spec, states, out / sid))
+    return "\n".join(blocks)
+
+
+__all__ = ["Job", "JobResult", "RegistrySpec", "batch", "expand_inputs", "process_session", "run_job", "run_sessions", "session_ids", "status", "summary"]

@@ -1,0 +1,196 @@
+"""Run a pipeline on one session: stages in topological order, through the cache.
+
+For every stage the runner gathers its input digests, computes its cache key,
+and either takes the outputs from the cache or reads the inputs, checks each
+table against the schema the stage declares, calls ``func(inputs, params,
+solver)``, checks the outputs and stores them. The recording is read only when
+a stage has to run. Stages whose required session streams are missing are
+skipped with everything downstream (a logged note, and a line in the manifest).
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+
+import pyarrow as pa
+
+from .. import __version__, schemas
+from ..errors import ImupipeError, SchemaError
+from ..ingest import read_recording
+from ..plugins import Registry
+from .cache import Cache, key_parts, read_manifest, session_digest, stream_digest, write_manifest
+from .dag import Node, Pipeline, Ref
+
+log = logging.getLogger("imupipe.pipeline")
+
+
+@dataclass
+class StageRecord:
+    """What happened to one stage: ``status`` is ran, cached, skipped or failed."""
+
+    status: str
+    key: str = ""
+    parts: dict | None = None
+    outputs: dict[str, str] = field(default_factory=dict)  # port -> digest
+    reason: str = ""
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"status": self.status, "key": self.key, "parts": self.parts, "outputs": self.outputs,
+                "reason": self.reason, "seconds": round(self.seconds, 6)}
+
+
+@dataclass
+class SessionRun:
+    """The outcome of a pipeline on a session; ``table(ref)`` loads an output on demand."""
+
+    session: Path
+    pipeline: Pipeline
+    cache: Cache
+    records: dict[str, StageRecord] = field(default_factory=dict)
+    _tables: dict[str, pa.Table] = field(default_factory=dict)
+
+    def table(self, ref: Ref) -> pa.Table | None:
+        """An output of a stage that ran or was cached; None if the stage was skipped."""
+        rec = self.records.get(ref.source)
+        if rec is None or rec.status not in ("ran", "cached"):
+            return None
+        name = str(ref)
+        if name not in self._tables:
+            self._tables[name] = self.cache.load(rec.key, ref.port)
+        return self._tables[name]
+
+    @property
+    def skipped(self) -> dict[str, str]:
+        return {k: r.reason for k, r in self.records.items() if r.status == "skipped"}
+
+
+class _Source:
+    """The session's raw streams, read only when first needed."""
+
+    def __init__(self, path: Path, pipeline: Pipeline, registry: Registry, digest: str,
+                 previous: dict | None):
+        self.path, self.pipeline, self.registry, self.digest = path, pipeline, registry, digest
+        self._streams: dict[str, pa.Table] | None = None
+        self._names: list[str] | None = None
+        if previous and previous.get("session_digest") == digest \
+                and previous.get("device") == pipeline.device and "streams" in previous:
+            self._names = list(previous["streams"])  # known from the last run of the same bytes
+
+    def _read(self) -> dict[str, pa.Table]:
+        if self._streams is None:
+            recording = read_recording(self.path, self.registry, self.pipeline.reader)
+            self._streams = dict(recording.device(self.pipeline.device))
+            self._names = sorted(self._streams)
+        return self._streams
+
+    def names(self) -> list[str]:
+        if self._names is None:
+            self._read()
+        return list(self._names or [])
+
+    def table(self, stream: str) -> pa.Table:
+        return self._read()[stream]
+
+
+def run_session(session: Path, pipeline: Pipeline, registry: Registry, cache: Cache,
+                manifest_path: Path, on_stage: Callable[[str, StageRecord], None] | None = None) -> SessionRun:
+    """Run ``pipeline`` on ``session``; write the run manifest (also when a stage fails)."""
+    session = Path(session)
+    if not session.exists():
+        raise ImupipeError(f"{session}: no such file")
+    digest = session_digest(session)
+    source = _Source(session, pipeline, registry, digest, read_manifest(manifest_path))
+    run = SessionRun(session, pipeline, cache)
+    error = None
+    try:
+        for key, node in pipeline.nodes.items():
+            record = _run_node(node, run, source, registry)
+            run.records[key] = record
+            if on_stage is not None:
+                on_stage(key, record)
+    except BaseException as exc:
+        error = f"{type(exc).__name__}: {exc}"
+        raise
+    finally:
+        write_manifest(manifest_path, {
+            "session": str(session.resolve()), "session_digest": digest, "device": pipeline.device,
+            "streams": source._names, "pipeline": {"name": pipeline.name, "path": str(pipeline.path)},
+            "imupipe_version": __version__, "error": error,
+            "stages": {k: r.to_dict() for k, r in run.records.items()},
+        })
+    return run
+
+
+def _run_node(node: Node, run: SessionRun, source: _Source, registry: Registry) -> StageRecord:
+    digests: dict[str, str] = {}
+    for port, ref in node.inputs.items():
+        found, why = _input_digest(ref, run, source)
+        if found is not None:
+            digests[port] = found
+        elif port not in node.stage.optional_inputs:
+            log.info("%s: skipping stage %r: %s", source.path, node.key, why)
+            return StageRecord("skipped", reason=why)
+    parts = key_parts(node, digests)
+    key = parts.key
+    cached = run.cache.digests(key)
+    if cached is not None:
+        registry.pm.hook.imupipe_after_stage(stage=node.key, key=key, cached=True, seconds=0.0)
+        return StageRecord("cached", key, parts.to_dict(), cached)
+
+    registry.pm.hook.imupipe_before_stage(stage=node.key, key=key)
+    where = f"{source.path}: stage {node.key!r} ({node.stage.name})"
+    inputs = {}
+    for port in digests:
+        ref = node.inputs[port]
+        table = source.table(ref.port) if ref.is_session else run.table(ref)
+        schemas.check(table, node.stage.inputs[port], f"{where} input {port!r}")
+        inputs[port] = table
+    t0 = time.perf_counter()
+    try:
+        outputs = node.stage.func(MappingProxyType(inputs), node.params, node.solver)
+    except ImupipeError as exc:
+        raise _prefixed(exc, where) from exc
+    seconds = time.perf_counter() - t0
+    _check_outputs(node, outputs, where)
+    stored = run.cache.store(parts, {p: outputs[p] for p in node.stage.outputs}, node.key)
+    registry.pm.hook.imupipe_after_stage(stage=node.key, key=key, cached=False, seconds=seconds)
+    return StageRecord("ran", key, parts.to_dict(), stored, seconds=seconds)
+
+
+def _input_digest(ref: Ref, run: SessionRun, source: _Source) -> tuple[str | None, str]:
+    """The content digest of an input, or None and why it is unavailable."""
+    if ref.is_session:
+        if ref.port not in source.names():
+            return None, f"the session has no {ref.port!r} stream"
+        return stream_digest(source.digest, run.pipeline.device, ref.port), ""
+    rec = run.records[ref.source]
+    if rec.status not in ("ran", "cached"):
+        return None, f"upstream stage {ref.source!r} was skipped ({rec.reason})"
+    return rec.outputs[ref.port], ""
+
+
+def _check_outputs(node: Node, outputs: object, where: str) -> None:
+    if not isinstance(outputs, dict):
+        raise SchemaError(f"{where}: returned {type(outputs).__name__}, expected a dict of tables "
+                          f"({', '.join(node.stage.outputs)})")
+    missing = [p for p in node.stage.outputs if p not in outputs]
+    extra = [p for p in outputs if p not in node.stage.outputs]
+    if missing or extra:
+        raise SchemaError(f"{where}: returned outputs {sorted(outputs)}, declared "
+                          f"{sorted(node.stage.outputs)}; fix the stage or its declaration")
+    for port, schema_id in node.stage.outputs.items():
+        schemas.check(outputs[port], schema_id, f"{where} output {port!r}")
+
+
+def _prefixed(exc: ImupipeError, where: str) -> ImupipeError:
+    """The same error, of the same class, with ``where`` in front of its message."""
+    new = copy.copy(exc)
+    new.args = (f"{where}: {exc}",)
+    return new

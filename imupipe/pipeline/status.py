@@ -1,0 +1,134 @@
+"""``imupipe status``: which stages would rerun and why, decided before anything runs.
+
+Compares the key parts each stage would have now (stage version, validated
+params, solver, input digests) with those recorded in the session's run
+manifest. Session inputs are digested from the files; an upstream input's
+digest is known only when the upstream stage is fresh (else it may or may not
+change: early cutoff decides when it runs).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from .cache import Cache, KeyParts, key_parts, session_digest, stream_digest
+from .dag import Pipeline
+
+
+@dataclass(frozen=True)
+class StageState:
+    stage: str
+    state: str  # fresh | stale | skipped
+    reasons: tuple[str, ...] = ()
+
+
+def stage_states(pipeline: Pipeline, session: Path, manifest: dict | None, cache: Cache) -> list[StageState]:
+    """The state of every stage of ``pipeline`` on ``session`` given its last run manifest."""
+    manifest = manifest or {}
+    records = manifest.get("stages", {})
+    digest = session_digest(session) if Path(session).is_file() else None
+    same_session = digest is not None and digest == manifest.get("session_digest") \
+        and manifest.get("device") == pipeline.device
+    streams = manifest.get("streams") if same_session else None
+    fresh_outputs: dict[str, dict] = {}
+    skipped: set[str] = set()
+    states = []
+    for key, node in pipeline.nodes.items():
+        rec = records.get(key)
+        if digest is None:
+            states.append(StageState(key, "stale", (f"session file {session} is missing",)))
+            continue
+        # a stage skipped last time on the same bytes (a stream it needs is absent) stays skipped
+        why_skip = _skip_reason(node, streams, skipped)
+        if why_skip:
+            skipped.add(key)
+            states.append(StageState(key, "skipped", (why_skip,)))
+            continue
+        if rec is None or rec.get("status") not in ("ran", "cached") or not rec.get("parts"):
+            why = "never run" if rec is None else f"not run last time ({rec.get('reason') or rec.get('status')})"
+            states.append(StageState(key, "stale", (why,)))
+            continue
+        old = KeyParts.from_dict(rec["parts"])
+        reasons, inputs, unknown = [], {}, set()
+        for port, ref in node.inputs.items():
+            if ref.is_session:
+                if streams is None or ref.port in streams:  # else an absent optional stream
+                    inputs[port] = stream_digest(digest, pipeline.device, ref.port)
+            elif ref.source in fresh_outputs:
+                inputs[port] = fresh_outputs[ref.source].get(ref.port, "")
+            elif ref.source not in skipped:
+                unknown.add(port)
+                reasons.append(f"upstream {ref.source!r} is stale (reruns unless its output comes out "
+                               "unchanged)")
+        new = key_parts(node, inputs)
+        reasons = _differences(old, new, node.inputs, set(inputs) | unknown) + reasons
+        if not reasons and cache.digests(new.key) is None:
+            reasons.append("its cached outputs are gone")
+        if reasons:
+            states.append(StageState(key, "stale", tuple(reasons)))
+        else:
+            fresh_outputs[key] = rec.get("outputs", {})
+            states.append(StageState(key, "fresh"))
+    return states
+
+
+def _skip_reason(node, streams: list[str] | None, skipped: set[str]) -> str:
+    for port, ref in node.inputs.items():
+        if port in node.stage.optional_inputs:
+            continue
+        if ref.is_session and streams is not None and ref.port not in streams:
+            return f"the session has no {ref.port!r} stream"
+        if not ref.is_session and ref.source in skipped:
+            return f"upstream {ref.source!r} is skipped"
+    return ""
+
+
+def _differences(old: KeyParts, new: KeyParts, wiring, wired: set[str]) -> list[str]:
+    out = []
+    if old.stage != new.stage:
+        out.append(f"stage changed {old.stage} -> {new.stage}")
+    elif old.version != new.version:
+        out.append(f"version changed {old.version} -> {new.version}")
+    out += _dict_changes("param", old.params, new.params)
+    if (old.solver or {}).get("name") != (new.solver or {}).get("name"):
+        out.append(f"solver changed {(old.solver or {}).get('name')} -> {(new.solver or {}).get('name')}")
+    elif old.solver and new.solver:
+        if old.solver["version"] != new.solver["version"]:
+            out.append(f"solver {new.solver['name']} version changed {old.solver['version']} -> "
+                       f"{new.solver['version']}")
+        out += _dict_changes("solver param", old.solver["params"], new.solver["params"])
+    for port in sorted(set(old.inputs) | wired):
+        if port not in old.inputs:
+            out.append(f"input {port!r} newly wired")
+        elif port not in wired:
+            out.append(f"input {port!r} no longer wired")
+        elif port in new.inputs and new.inputs[port] != old.inputs[port]:
+            ref = wiring[port]
+            what = "the session file changed" if ref.is_session else f"{ref} changed"
+            out.append(f"input {port!r} changed ({what})")
+    return out
+
+
+def _dict_changes(label: str, old: dict, new: dict) -> list[str]:
+    out = []
+    for name in sorted(set(old) | set(new)):
+        if name not in old:
+            out.append(f"{label} {name} added ({new[name]!r})")
+        elif name not in new:
+            out.append(f"{label} {name} removed")
+        elif old[name] != new[name]:
+            out.append(f"{label} {name} changed {old[name]!r} -> {new[name]!r}")
+    return out
+
+
+def render(session: Path, pipeline: Pipeline, states: list[StageState], run_dir: Path) -> str:
+    """Text for one session: a header, then one line per stage."""
+    stale = sum(s.state == "stale" for s in states)
+    head = (f"{session}  (pipeline {pipeline.name!r}, results in {run_dir}): "
+            f"{stale} stale, {sum(s.state == 'fresh' for s in states)} fresh")
+    width = max((len(s.stage) for s in states), default=0)
+    lines = [head]
+    for s in states:
+        lines.append(f"  {s.state:<7} {s.stage:<{width}}  {'; '.join(s.reasons)}".rstrip())
+    return "\n".join(lines)

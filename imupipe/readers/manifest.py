@@ -1,0 +1,348 @@
+"""Session manifest (``session.toml``): a recording split over several files.
+
+Names each file, its stream, columns, units and time base, and optional
+protocol sections; see docs/session-manifest.md for the format. Paths are
+relative to the manifest. Files are parsed here directly (CSV and MATLAB
+buffers) or, with ``reader = "NAME"``, by any registered reader, so a plugin's
+format can be part of a session without this module knowing it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import tomllib
+import warnings
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import pyarrow as pa
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from ..components import Recording
+from ..errors import ConfigError, ReaderError
+from .csv import WHITESPACE, ColumnRef, canonical_table, read_columns
+
+StreamName = Literal["accel", "gyro", "mag", "temperature"]
+G0 = 9.80665  # standard gravity, m/s^2 per g
+
+# unit -> (factor, addend): SI = value * factor + addend. "counts" keeps the raw unit.
+UNITS: dict[str, dict[str, tuple[float, float]]] = {
+    "accel": {"m/s^2": (1.0, 0.0), "m/s2": (1.0, 0.0), "g": (G0, 0.0), "mg": (G0 * 1e-3, 0.0),
+              "counts": (1.0, 0.0)},
+    "gyro": {"rad/s": (1.0, 0.0), "deg/s": (math.pi / 180, 0.0), "dps": (math.pi / 180, 0.0),
+             "mrad/s": (1e-3, 0.0), "rpm": (2 * math.pi / 60, 0.0), "counts": (1.0, 0.0)},
+    "mag": {"T": (1.0, 0.0), "mT": (1e-3, 0.0), "uT": (1e-6, 0.0), "nT": (1e-9, 0.0),
+            "gauss": (1e-4, 0.0), "G": (1e-4, 0.0), "mG": (1e-7, 0.0), "mgauss": (1e-7, 0.0),
+            "counts": (1.0, 0.0)},
+    "temperature": {"degC": (1.0, 0.0), "K": (1.0, -273.15), "counts": (1.0, 0.0)},
+}
+CANONICAL_UNIT = {"accel": "m/s^2", "gyro": "rad/s", "mag": "T", "temperature": "degC"}
+TIME_UNITS = {"s": 1e9, "ms": 1e6, "us": 1e3, "ns": 1.0}
+FORMATS_BY_SUFFIX = {".csv": "csv", ".txt": "csv", ".tsv": "csv", ".dat": "csv",
+                     ".mat": "matlab", ".h5": "matlab", ".hdf5": "matlab"}
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+PerAxis = float | tuple[float, float, float]
+
+
+class SessionInfo(_Model):
+    name: str
+    description: str = ""
+    device: str = "imu"  # device of streams that do not name one
+
+
+class StreamSpec(_Model):
+    """One stream from one file: ``SI = (raw - offset) * scale * unit_factor``."""
+
+    stream: StreamName
+    file: str
+    device: str | None = None
+    reader: str | None = None  # a registered reader parses the file instead of this module
+    source_stream: str | None = None  # with reader: which of its streams (default: the only one)
+    source_device: str | None = None  # with reader: which of its devices (default: the only one)
+    format: Literal["csv", "matlab"] | None = None  # default: by suffix
+    delimiter: str = ","  # one character, or "whitespace"
+    skip_lines: int = Field(0, ge=0)  # lines before the header (or the data, without header)
+    header: bool = True
+    variable: str | None = None  # matlab: dataset name (default: the file's only one)
+    columns: dict[str, ColumnRef] = {}  # t, x, y, z (or t, temperature) -> name / 0-based index
+    time_unit: Literal["s", "ms", "us", "ns", "samples"] = "s"
+    rate_hz: float | None = Field(None, gt=0)  # fixed rate when there is no time column
+    unit: str | None = None  # default: the canonical SI unit of the stream
+    scale: PerAxis = 1.0
+    lsb_per_unit: PerAxis | None = None  # datasheet sensitivity, e.g. 16384 LSB/g: scale = 1/it
+    offset: PerAxis = 0.0
+    repair: list[Literal["drop_zero_padding"]] = []
+
+    @model_validator(mode="after")
+    def _consistent(self) -> StreamSpec:
+        axes = ["temperature"] if self.stream == "temperature" else ["x", "y", "z"]
+        if self.unit is not None and self.unit not in UNITS[self.stream]:
+            raise ValueError(f"unit {self.unit!r} does not fit stream {self.stream!r}; "
+                             f"known: {', '.join(UNITS[self.stream])}")
+        if self.lsb_per_unit is not None and self.scale != 1.0:
+            raise ValueError("give either scale or lsb_per_unit, not both")
+        if self.reader is None:
+            extra = sorted(set(self.columns) - {"t", *axes})
+            if extra:
+                raise ValueError(f"columns has unknown key(s) {', '.join(extra)}; "
+                                 f"{self.stream} takes t, {', '.join(axes)}")
+            if self.columns and not set(axes) <= set(self.columns):
+                missing = [a for a in axes if a not in self.columns]
+                raise ValueError(f"columns lacks {', '.join(missing)}")
+            if self.columns and "t" not in self.columns and self.rate_hz is None:
+                raise ValueError("no time column: give columns.t or rate_hz")
+            if "t" in self.columns and self.rate_hz is not None and self.time_unit != "samples":
+                raise ValueError("both columns.t and rate_hz: give one (or time_unit = "
+                                 "\"samples\" for a sample counter)")
+            if self.time_unit == "samples" and self.rate_hz is None:
+                raise ValueError("time_unit = \"samples\" needs rate_hz")
+            if self.delimiter != WHITESPACE and len(self.delimiter) != 1:
+                raise ValueError("delimiter must be one character or \"whitespace\"")
+        return self
+
+    def axes(self) -> list[str]:
+        return ["temperature"] if self.stream == "temperature" else ["x", "y", "z"]
+
+    def column_refs(self) -> dict[str, ColumnRef]:
+        """Explicit columns, or positional defaults: [t,] x, y, z (or [t,] temperature)."""
+        if self.columns:
+            return dict(self.columns)
+        keys = self.axes() if self.rate_hz is not None and self.time_unit != "samples" \
+            else ["t", *self.axes()]
+        return {k: i for i, k in enumerate(keys)}
+
+    def scale_factors(self) -> np.ndarray:
+        """(k,) per-axis factor from raw values to the declared unit."""
+        scale = 1.0 / np.asarray(self.lsb_per_unit, float) if self.lsb_per_unit is not None \
+            else np.asarray(self.scale, float)
+        return np.broadcast_to(scale, (len(self.axes()),))
+
+
+class Sections(_Model):
+    """Named protocol sections, from a file (imucal's section list) and/or inline."""
+
+    file: str | None = None  # JSON {name: {start, end}} or CSV "name,start,end"
+    stream: StreamName = "accel"  # whose samples the indices count
+    device: str | None = None
+    unit: Literal["samples", "s"] = "samples"  # samples: 0-based, end exclusive; s: from 1st sample
+    items: dict[str, tuple[float, float]] = {}
+
+
+class Manifest(_Model):
+    session: SessionInfo
+    streams: list[StreamSpec] = Field(min_length=1)
+    sections: Sections | None = None
+    meta: dict[str, Any] = {}  # free-form facts copied into Recording.meta["meta"]
+
+
+def load_manifest(path: Path) -> Manifest:
+    """Parse and validate a manifest; errors name the file and the key path."""
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read the manifest ({exc})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    try:
+        return Manifest.model_validate(doc)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in err["loc"]).lstrip(".")
+        msg = err["msg"].removeprefix("Value error, ")
+        raise ConfigError(f"{path}: {where or 'top level'}: {msg}") from None
+
+
+def read_manifest(path: Path) -> Recording:
+    """Read every stream a manifest names into one ``Recording``."""
+    manifest = load_manifest(path)
+    devices: dict[str, dict[str, pa.Table]] = {}
+    for i, spec in enumerate(manifest.streams):
+        device = spec.device or manifest.session.device
+        if spec.stream in devices.get(device, {}):
+            raise ConfigError(f"{path}: streams[{i}]: a second {spec.stream!r} stream for device "
+                              f"{device!r}; give it another `device`")
+        devices.setdefault(device, {})[spec.stream] = read_stream(spec, path, i)
+    meta: dict[str, Any] = {"session": manifest.session.name, "manifest": str(path),
+                            "description": manifest.session.description, "meta": manifest.meta}
+    if manifest.sections is not None:
+        meta["sections"] = resolve_sections(manifest.sections, devices, manifest.session.device,
+                                            path)
+    return Recording(source=str(path), devices=devices, meta=meta)
+
+
+def _file(manifest_path: Path, name: str) -> Path:
+    return Path(os.path.normpath(manifest_path.parent / name))
+
+
+def read_stream(spec: StreamSpec, manifest_path: Path, index: int) -> pa.Table:
+    """One canonical table from the file a stream spec names."""
+    path = _file(manifest_path, spec.file)
+    if not path.is_file():
+        raise ReaderError(f"{manifest_path}: streams[{index}].file: no such file {path}")
+    if spec.reader is not None:
+        t_ns, values = _via_reader(spec, path)
+    else:
+        t_ns, values = _parse(spec, path)
+    unit = spec.unit or CANONICAL_UNIT[spec.stream]
+    factor, addend = UNITS[spec.stream][unit]
+    offset = np.broadcast_to(np.asarray(spec.offset, float), (len(values),))
+    scale = spec.scale_factors()
+    si = [(v - offset[k]) * scale[k] * factor + addend for k, v in enumerate(values)]
+    return canonical_table(spec.stream, t_ns, si, {"imupipe.source": str(path),
+                                                   "imupipe.source_unit": unit})
+
+
+def _parse(spec: StreamSpec, path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
+    fmt = spec.format or FORMATS_BY_SUFFIX.get(path.suffix.lower())
+    if fmt is None:
+        raise ReaderError(f"{path}: cannot tell the format from the suffix; "
+                          "give format = \"csv\" or \"matlab\" in the manifest")
+    refs = spec.column_refs()
+    if fmt == "csv":
+        int_keys = ("t",) if spec.time_unit == "ns" else ()
+        data = read_columns(path, refs, delimiter=spec.delimiter, skip_lines=spec.skip_lines,
+                            header=spec.header, int_keys=int_keys)
+    else:
+        from .matlab import read_buffer
+
+        data = _pick_columns(path, read_buffer(path, spec.variable), refs)
+    if "drop_zero_padding" in spec.repair:
+        data = _drop_zero_padding(data, path)
+    n = len(next(iter(data.values())))
+    if "t" in data:
+        t = data["t"]
+        if spec.time_unit == "samples":
+            t_ns = np.round(t * (1e9 / spec.rate_hz)).astype(np.int64)
+        elif spec.time_unit == "ns":
+            t_ns = t.astype(np.int64)
+        else:
+            t_ns = np.round(t * TIME_UNITS[spec.time_unit]).astype(np.int64)
+    else:
+        t_ns = np.round(np.arange(n) * (1e9 / spec.rate_hz)).astype(np.int64)
+    return t_ns, [data[a] for a in spec.axes()]
+
+
+def _pick_columns(path: Path, buffer: np.ndarray, refs: dict[str, ColumnRef]
+                  ) -> dict[str, np.ndarray]:
+    """Columns of an (n, k) buffer by 0-based index (or ``colN``)."""
+    out = {}
+    for key, ref in refs.items():
+        m = re.fullmatch(r"col(\d+)", ref) if isinstance(ref, str) else None
+        i = int(m.group(1)) if m else ref
+        if not isinstance(i, int) or not 0 <= i < buffer.shape[1]:
+            raise ReaderError(f"{path}: no column {ref!r} in a buffer of {buffer.shape[1]} "
+                              "columns; refer to columns by 0-based index")
+        out[key] = np.asarray(buffer[:, i], dtype=np.float64)
+    return out
+
+
+def _drop_zero_padding(data: dict[str, np.ndarray], path: Path) -> dict[str, np.ndarray]:
+    """Drop trailing all-zero rows: a logger's preallocated buffer that was never filled."""
+    stacked = np.column_stack(list(data.values()))
+    nonzero = np.flatnonzero((stacked != 0).any(axis=1))
+    keep = int(nonzero[-1]) + 1 if nonzero.size else 0
+    if keep < len(stacked):
+        warnings.warn(f"{path}: dropped {len(stacked) - keep} trailing all-zero rows "
+                      "(repair = drop_zero_padding)", stacklevel=2)
+    return {k: v[:keep] for k, v in data.items()}
+
+
+def _via_reader(spec: StreamSpec, path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
+    # A fresh registry: read() has none, and the manifest may name any plugin's reader.
+    from ..ingest import read_recording
+    from ..plugins import make_registry
+
+    recording = read_recording(path, make_registry(), reader=spec.reader)
+    device = recording.device(spec.source_device)
+    name = spec.source_stream
+    if name is None:
+        if len(device) != 1:
+            raise ReaderError(f"{path}: reader {spec.reader!r} gives streams "
+                              f"{', '.join(sorted(device))}; choose one with source_stream")
+        name = next(iter(device))
+    if name not in device:
+        raise ReaderError(f"{path}: reader {spec.reader!r} gives no stream {name!r}; "
+                          f"it gives {', '.join(sorted(device))}")
+    table = device[name]
+    cols = ["temperature"] if name == "temperature" else ["x", "y", "z"]
+    if len(cols) != len(spec.axes()):
+        raise ReaderError(f"{path}: stream {name!r} cannot be taken as {spec.stream!r}")
+    return (table.column("t_ns").to_numpy(),
+            [table.column(c).to_numpy(zero_copy_only=False) for c in cols])
+
+
+def resolve_sections(sections: Sections, devices: dict[str, dict[str, pa.Table]],
+                     default_device: str, path: Path) -> dict[str, dict[str, Any]]:
+    """Sections as ``{name: {start, end, t_start_ns, t_end_ns, stream}}``.
+
+    ``start``/``end``: 0-based sample indices into ``stream`` (end exclusive);
+    ``t_start_ns``/``t_end_ns``: time of the first and last sample inside.
+    """
+    device = sections.device or default_device
+    table = devices.get(device, {}).get(sections.stream)
+    if table is None:
+        raise ConfigError(f"{path}: sections.stream: no {sections.stream!r} stream on device "
+                          f"{device!r}")
+    t = table.column("t_ns").to_numpy()
+    raw: dict[str, tuple[float, float]] = {}
+    if sections.file is not None:
+        raw.update(_section_file(_file(path, sections.file)))
+    raw.update(sections.items)
+    out = {}
+    for name, (a, b) in raw.items():
+        if sections.unit == "s":
+            a, b = (int(np.searchsorted(t, t[0] + x * 1e9)) for x in (a, b))
+        start, end = int(a), int(b)
+        if not 0 <= start < end <= len(t):
+            raise ConfigError(f"{path}: sections: {name!r} = [{start}, {end}) is outside the "
+                              f"{len(t)} samples of {sections.stream!r}")
+        out[name] = {"start": start, "end": end, "t_start_ns": int(t[start]),
+                     "t_end_ns": int(t[end - 1]), "stream": sections.stream}
+    return out
+
+
+def _section_file(path: Path) -> dict[str, tuple[float, float]]:
+    """imucal's section list: JSON ``{name: {"start": i, "end": j}}`` or CSV ``name,start,end``."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the section list ({exc.strerror})") from None
+    try:
+        if path.suffix.lower() == ".json":
+            return {k: (v["start"], v["end"]) for k, v in json.loads(text).items()}
+        rows = [line.split(",") for line in text.splitlines()[1:] if line.strip()]
+        return {r[0].strip(): (float(r[1]), float(r[2])) for r in rows}
+    except (ValueError, KeyError, TypeError, IndexError, AttributeError):
+        raise ConfigError(f"{path}: not a section list; expected JSON "
+                          "{\"name\": {\"start\": i, \"end\": j}} or CSV rows name,start,end") from None
+
+
+_SESSION_TABLE = re.compile(rb"^\s*\[session\]", re.MULTILINE)
+
+
+class ManifestReader:
+    """``*.toml`` files with a ``[session]`` table."""
+
+    name = "session"
+    suffixes = (".toml",)
+
+    def sniff(self, path: Path, head: bytes) -> bool:
+        if path.suffix.lower() not in self.suffixes:
+            return False
+        with open(path, "rb") as f:
+            return bool(_SESSION_TABLE.search(f.read(1 << 16)))
+
+    def read(self, path: Path) -> Recording:
+        return read_manifest(Path(path))
+
+
+COMPONENTS = [ManifestReader()]

@@ -1,0 +1,121 @@
+"""PX4 ULog (``.ulg``) via pyulog: the ``px4`` extra.
+
+Devices:
+
+- ``imu``: the ``sensor_combined`` topic (PX4's selected primary IMU): accel
+  [m/s^2] at ``timestamp + accelerometer_timestamp_relative``, gyro [rad/s] at
+  ``timestamp``, mag [gauss -> T] (older logs) at ``timestamp +
+  magnetometer_timestamp_relative``, each distinct mag sample once (the topic
+  repeats the latest one at the IMU rate). No temperature (``baro_temp_celcius``
+  is the barometer's, not the IMU's).
+- ``imu<i>``: instance ``i`` of ``sensor_accel`` with the ``sensor_gyro``
+  instance of the same ``device_id`` (one chip), temperature [degC] from
+  ``sensor_accel``; times from ``timestamp_sample``.
+- ``mag<j>``: instance ``j`` of ``sensor_mag`` [gauss -> T] (a separate chip),
+  with its temperature when the driver reports one.
+
+Time stamps are PX4 boot time in microseconds.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..components import Recording
+from ..errors import ReaderError, require
+from .csv import canonical_table
+
+MAGIC = b"ULog\x01\x12\x35"
+GAUSS = 1e-4  # T per gauss
+RELATIVE_INVALID = 0x7FFFFFFF  # PX4's RELATIVE_TIMESTAMP_INVALID
+TOPICS = ["sensor_combined", "sensor_accel", "sensor_gyro", "sensor_mag"]
+
+
+def _ns(us: np.ndarray) -> np.ndarray:
+    return np.asarray(us, dtype=np.int64) * 1000
+
+
+def _xyz(data: dict, prefix: str, factor: float = 1.0) -> list[np.ndarray]:
+    return [np.asarray(data[f"{prefix}{k}"], dtype=np.float64) * factor for k in "xyz"]
+
+
+def _combined(data: dict) -> dict:
+    """Streams of ``sensor_combined`` (field names of PX4 v1.x)."""
+    t = np.asarray(data["timestamp"], dtype=np.int64)
+    streams = {}
+    rel = np.asarray(data.get("accelerometer_timestamp_relative", np.zeros_like(t)), np.int64)
+    ok = rel != RELATIVE_INVALID
+    streams["accel"] = canonical_table(
+        "accel", _ns(t[ok] + rel[ok]),
+        [np.asarray(data[f"accelerometer_m_s2[{i}]"], np.float64)[ok] for i in range(3)])
+    streams["gyro"] = canonical_table(
+        "gyro", _ns(t), [np.asarray(data[f"gyro_rad[{i}]"], np.float64) for i in range(3)])
+    if "magnetometer_ga[0]" in data:
+        rel = np.asarray(data["magnetometer_timestamp_relative"], np.int64)
+        tm = t + rel
+        # keep each distinct mag sample once: the topic repeats it until the next one arrives
+        new = np.concatenate([[True], tm[1:] != tm[:-1]]) & (rel != RELATIVE_INVALID)
+        if new.any():
+            streams["mag"] = canonical_table(
+                "mag", _ns(tm[new]),
+                [np.asarray(data[f"magnetometer_ga[{i}]"], np.float64)[new] * GAUSS
+                 for i in range(3)])
+    return streams
+
+
+def _instance_time(data: dict) -> np.ndarray:
+    return _ns(data["timestamp_sample"] if "timestamp_sample" in data else data["timestamp"])
+
+
+class UlogReader:
+    """PX4 ULog files: ``sensor_combined`` and per-instance sensor topics."""
+
+    name = "ulog"
+    suffixes = (".ulg",)
+
+    def sniff(self, path: Path, head: bytes) -> bool:
+        return head.startswith(MAGIC)
+
+    def read(self, path: Path) -> Recording:
+        pyulog = require("pyulog", "px4")
+        path = Path(path)
+        try:
+            log = pyulog.ULog(str(path), TOPICS)
+        except Exception as exc:  # noqa: BLE001 -- pyulog raises bare Exception on bad files
+            raise ReaderError(f"{path}: not a readable ULog file ({exc})") from None
+        topics: dict[str, dict[int, dict]] = {}
+        for d in log.data_list:
+            topics.setdefault(d.name, {})[d.multi_id] = d.data
+        devices: dict[str, dict] = {}
+        if "sensor_combined" in topics:
+            devices["imu"] = _combined(topics["sensor_combined"][0])
+        gyros = {int(np.asarray(g["device_id"])[0]): g
+                 for g in topics.get("sensor_gyro", {}).values() if "device_id" in g}
+        for i, acc in sorted(topics.get("sensor_accel", {}).items()):
+            streams = {"accel": canonical_table("accel", _instance_time(acc), _xyz(acc, ""))}
+            if "temperature" in acc and np.isfinite(acc["temperature"]).all():
+                streams["temperature"] = canonical_table(
+                    "temperature", _instance_time(acc), [np.asarray(acc["temperature"], float)])
+            gyro = gyros.pop(int(np.asarray(acc["device_id"])[0]), None) if "device_id" in acc \
+                else None
+            if gyro is not None:
+                streams["gyro"] = canonical_table("gyro", _instance_time(gyro), _xyz(gyro, ""))
+            devices[f"imu{i}"] = streams
+        for k, gyro in enumerate(gyros.values()):  # gyros without an accel on the same chip
+            devices[f"gyro{k}"] = {"gyro": canonical_table("gyro", _instance_time(gyro),
+                                                           _xyz(gyro, ""))}
+        for j, mag in sorted(topics.get("sensor_mag", {}).items()):
+            streams = {"mag": canonical_table("mag", _instance_time(mag), _xyz(mag, "", GAUSS))}
+            if "temperature" in mag and np.isfinite(mag["temperature"]).all():
+                streams["temperature"] = canonical_table(
+                    "temperature", _instance_time(mag), [np.asarray(mag["temperature"], float)])
+            devices[f"mag{j}"] = streams
+        if not devices:
+            raise ReaderError(f"{path}: no sensor_combined, sensor_accel, sensor_gyro or "
+                              "sensor_mag topic; was the IMU logged?")
+        return Recording(source=str(path), devices=devices)
+
+
+COMPONENTS = [UlogReader()]

@@ -1,0 +1,127 @@
+"""Gyroscope, method B (Chikrin & Golousov 2021): fit by integrating the turns.
+
+The bias is the mean rate over the rests, Eq. (2.14)-(2.15). The remaining nine
+constants ``theta`` (scales and the full misalignment, Eq. (1.5)) minimise the
+mismatch between the gravity direction measured at the rest after each turn
+and the one measured before it, carried through the turn by the integrated,
+corrected gyro, Eq. (2.16)-(2.18), starting from the ideal sensor
+``theta_0 = [1, 1, 1, 0, ...]``.
+
+imupipe parametrises the nine constants as the correction matrix ``M``
+(``omega = M (omega_raw - b)``), which spans the same set as ``(M^G S^G)^-1``;
+``M`` starts at the identity. Gravity directions come from the corrected
+accelerometer, so ``M`` also carries the gyro-to-accelerometer alignment: the
+gyro ends up in the accelerometer's frame. Rotations are integrated exactly
+(``rotation_integration``), all turns at once.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..components import Params
+from ..errors import SolverError
+from ..observations import GyroObservations, TriadFit
+from .rotation_integration import pad_turns, turn_rotations
+from .triad_covariance import gauss_newton_cov
+
+MIN_TURNS = 5  # each turn gives two equations for nine constants
+
+
+class GyroIntegrationParams(Params):
+    fit_bias: bool = False
+    """Also refine the bias in the optimisation (the paper keeps Eq. (2.15)'s mean)."""
+    max_nfev: int = 200
+    """Cost evaluations the optimiser may spend."""
+
+
+def rest_bias(bias: np.ndarray, bias_cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. (2.15) over all rests, inverse-variance weighted: mean (3,) rad/s and its (3, 3) covariance.
+
+    ``bias`` (n, 3) rest means, ``bias_cov`` (n, 3, 3) their covariances.
+    """
+    w = 1.0 / np.maximum(np.trace(bias_cov, axis1=1, axis2=2), 1e-300)
+    w = w / w.sum()
+    mean = w @ bias
+    cov = np.einsum("n,nij->ij", w**2, bias_cov)
+    return mean, cov
+
+
+def gravity_residuals(M: np.ndarray, b: np.ndarray, rate: np.ndarray, dt: np.ndarray,
+                      g_before: np.ndarray, g_after: np.ndarray) -> np.ndarray:
+    """(m, 3) ``R_j^T g_before - g_after`` of Eq. (2.18) for padded turns.
+
+    ``rate`` (m, k, 3) raw rad/s, ``dt`` (m, k) s, ``g_*`` (m, 3) unit vectors.
+    """
+    R = turn_rotations((rate - b) @ M.T, dt)
+    return np.einsum("mji,mj->mi", R, g_before) - g_after
+
+
+class GyroIntegration:
+    """Solver ``gyro_integration`` (kind ``gyro``): Eq. (2.15)-(2.18) by least squares."""
+
+    name = "gyro_integration"
+    kind = "gyro"
+    version = "1"
+    params: ClassVar[type[Params]] = GyroIntegrationParams
+
+    def solve(self, observations: GyroObservations, params: GyroIntegrationParams) -> TriadFit:
+        turns = observations.turns
+        m = len(turns)
+        if m < MIN_TURNS:
+            raise SolverError(
+                f"gyro_integration: {m} turns between rests for 9 gyroscope constants; record at "
+                f"least {MIN_TURNS - m} more turns (about all three axes)"
+            )
+        gravity = np.asarray(observations.gravity, float)
+        gravity = gravity / np.linalg.norm(gravity, axis=1, keepdims=True)
+        g0, g1 = gravity[turns.before], gravity[turns.after]
+        rate, dt = pad_turns(turns.t, turns.gyro)
+        b, b_cov = rest_bias(np.asarray(observations.bias, float),
+                             np.asarray(observations.bias_cov, float))
+
+        def unpack(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            return theta[:9].reshape(3, 3), (theta[9:] if params.fit_bias else b)
+
+        def cost(theta: np.ndarray) -> np.ndarray:
+            M, bias = unpack(theta)
+            return gravity_residuals(M, bias, rate, dt, g0, g1).ravel()  # Eq. (2.18)
+
+        theta0 = np.concatenate([np.eye(3).ravel(), b if params.fit_bias else []])
+        sol = least_squares(cost, theta0, method="lm" if 3 * m >= len(theta0) else "trf",
+                            x_scale="jac", max_nfev=params.max_nfev)
+        M, bias = unpack(sol.x)
+        J = sol.jac
+        if np.linalg.matrix_rank(J.T @ J, tol=1e-10 * np.abs(J.T @ J).max()) < len(theta0):
+            raise SolverError(
+                "gyro_integration: the turns do not determine all nine gyroscope constants; "
+                "record turns about all three axes (and combinations of them)"
+            )
+        ssr = float(sol.fun @ sol.fun)
+        dof = 2 * m - len(theta0)  # the along-gravity residual component is second order
+        sigma2 = ssr / dof if dof > 0 else np.nan
+        cov_p, _ = gauss_newton_cov(J * np.sqrt(1.0 / sigma2) if dof > 0 else J, 0.0, dof)
+        cov12 = np.full((12, 12), np.nan)
+        cov12[:9, :9] = cov_p[:9, :9]
+        cov12[9:, 9:] = cov_p[9:, 9:] if params.fit_bias else b_cov
+        if params.fit_bias:
+            cov12[:9, 9:] = cov_p[:9, 9:]
+            cov12[9:, :9] = cov_p[9:, :9]
+        else:
+            cov12[:9, 9:] = cov12[9:, :9] = 0.0
+        res_deg = np.degrees(np.linalg.norm(sol.fun.reshape(m, 3), axis=1))
+        details = {
+            "turns": m,
+            "rms_gravity_mismatch_deg": float(np.sqrt(np.mean(res_deg**2))),
+            "max_gravity_mismatch_deg": float(res_deg.max()),
+            "cost_evaluations": int(sol.nfev),
+            "converged": bool(sol.success),
+            "fit_bias": params.fit_bias,
+        }
+        return TriadFit(M, bias, cov12, details)
+
+
+COMPONENTS = [GyroIntegration()]

@@ -1,0 +1,190 @@
+"""Method A gyroscope: Rodrigues' formula over turns between rests (eqs. 27-37).
+
+Each turn moves the corrected gravity from ``g0`` to ``g1``; the half finite
+rotation ``Y`` measured by the corrected gyro must satisfy ``G Y = 0`` with
+``G = C C^T + S S^T - I`` (eq. 31). With ``Y ~ M Y~`` and ``M00 = 1`` this is
+linear in the other 8 entries of M (eqs. 33-36); the scale comes from the turn
+angles (eq. 37).
+
+``exact_rotation = True`` replaces the small-angle sum of eq. (29) by the rate
+integrated as a rotation: ``Y~`` becomes ``M^-1 phi(M)``, with ``phi`` the
+rotation vector of the corrected rates, iterated to a fixed point, and the scale
+uses ``tan(chi/2)``; turns of tens of degrees then add no bias.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from ..components import Params
+from ..errors import SolverError
+from ..observations import GyroObservations, TriadFit
+from ._rotation import integrate_rotations, rotation_vectors, step_times
+
+MIN_TURNS = 10  # 8 unknowns, one informative equation per turn
+
+
+class GyroRodriguesParams(Params):
+    """``exact_rotation``: integrate the rate as a rotation (True) or the paper's
+    small-angle sum (False). ``min_tilt_deg``: turns that move gravity by less are
+    uninformative (rotation about the vertical) and skipped. ``iterations``: fixed-point
+    passes of the exact mode. ``max_scale_turn_deg``: the scale (eq. 37 over all turns)
+    uses turns up to this angle (tan(chi/2) is ill-conditioned near 180 deg)."""
+
+    exact_rotation: bool = True
+    min_tilt_deg: float = 0.5
+    min_turns: int = MIN_TURNS
+    iterations: int = 4
+    max_scale_turn_deg: float = 60.0
+
+
+def turn_rates(obs: GyroObservations) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per turn: times (k,) s and raw rates minus the mean bias of the rests around it (k, 3)."""
+    out = []
+    for j in range(len(obs.turns)):
+        bias = 0.5 * (obs.bias[obs.turns.before[j]] + obs.bias[obs.turns.after[j]])
+        out.append((obs.turns.t[j], obs.turns.gyro[j] - bias))
+    return out
+
+
+def rotations_of(rates: list[tuple[np.ndarray, np.ndarray]], M: np.ndarray,
+                 exact: bool) -> np.ndarray:
+    """Rotation vectors (m, 3) rad of the corrected rates ``w @ M.T`` of each motion:
+    integrated as rotations (exact) or summed as in eq. (29)."""
+    if exact:
+        return rotation_vectors(integrate_rotations([t for t, _ in rates],
+                                                    [w @ M.T for _, w in rates]))
+    return np.array([step_times(t) @ (w @ M.T) for t, w in rates]).reshape(-1, 3)
+
+
+def gibbs_of(phi: np.ndarray, exact: bool) -> np.ndarray:
+    """Half finite-rotation vector: ``e tan(chi/2)`` (exact) or ``phi / 2`` (eq. 28)."""
+    chi = np.linalg.norm(phi)
+    if not exact or chi < 1e-12:
+        return 0.5 * phi
+    return phi / chi * np.tan(chi / 2)
+
+
+def rodrigues_error(g0: np.ndarray, g1: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Eq. (38): ``E = (g1 - g0) + Y x (g1 + g0)``, (3,) or (m, 3)."""
+    return (g1 - g0) + np.cross(Y, g1 + g0)
+
+
+def angle_error(g0: np.ndarray, g1: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Eq. (39): turn-angle error (rad) for each turn, rows of (m, 3) arrays."""
+    E = rodrigues_error(g0, g1, Y)
+    e = Y / np.maximum(np.linalg.norm(Y, axis=-1, keepdims=True), 1e-300)
+    c = np.cross(e, g1 + g0)
+    return 2 * np.sum(E * c, axis=-1) / np.maximum(np.sum(c * c, axis=-1), 1e-300)
+
+
+def design(G: np.ndarray, Yt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows (3, 8) and right side (3,) of eq. (35) for one turn (misprint of eq. 34 fixed)."""
+    y0, y1, y2 = Yt
+    H = np.column_stack([G[:, 0] * y1, G[:, 0] * y2, G[:, 1] * y0, G[:, 1] * y1, G[:, 1] * y2,
+                         G[:, 2] * y0, G[:, 2] * y1, G[:, 2] * y2])
+    return H, -y0 * G[:, 0]
+
+
+class GyroRodrigues:
+    """Gyroscope solver of method A: ``solve(GyroObservations) -> TriadFit``."""
+
+    name = "gyro_rodrigues"
+    kind = "gyro"
+    version = "1"
+    params: ClassVar[type[Params]] = GyroRodriguesParams
+
+    def solve(self, obs: GyroObservations, params: GyroRodriguesParams) -> TriadFit:
+        g = obs.gravity / np.linalg.norm(obs.gravity, axis=1, keepdims=True)
+        g0, g1 = g[obs.turns.before], g[obs.turns.after]
+        tilt = np.degrees(np.arccos(np.clip(np.sum(g0 * g1, axis=1), -1, 1)))
+        use = np.flatnonzero(tilt >= params.min_tilt_deg)
+        if len(use) < params.min_turns:
+            raise SolverError(
+                f"gyro: {len(use)} of {len(obs.turns)} turns tilt gravity by >= "
+                f"{params.min_tilt_deg} deg; eqs. (31)-(36) need at least {params.min_turns} turns "
+                "about varied horizontal axes: record more rest-turn-rest motions"
+            )
+        rates = turn_rates(obs)
+        C = np.cross(g0, g1)
+        C /= np.linalg.norm(C, axis=1, keepdims=True).clip(1e-300)
+        S = (g0 + g1) / np.linalg.norm(g0 + g1, axis=1, keepdims=True).clip(1e-300)
+        Gs = np.einsum("ki,kj->kij", C, C) + np.einsum("ki,kj->kij", S, S) - np.eye(3)  # Eq. (31)
+
+        M = np.eye(3)
+        used = [rates[j] for j in use]
+        passes = params.iterations if params.exact_rotation else 1
+        for _ in range(passes):
+            # Y~ such that M Y~ is the rotation of the corrected rates (eq. 29 when small-angle)
+            Yts = rotations_of(used, M, True) @ np.linalg.inv(M).T if params.exact_rotation \
+                else rotations_of(used, np.eye(3), False)
+            rows, rhs = [], []
+            for G, Yt in zip(Gs[use], Yts, strict=True):
+                H, z = design(G, Yt / max(np.linalg.norm(Yt), 1e-12))
+                rows.append(H)
+                rhs.append(z)
+            H, Z = np.vstack(rows), np.concatenate(rhs)
+            m, *_ = np.linalg.lstsq(H, Z, rcond=None)  # Eq. (36)
+            M_hat = np.array([[1.0, m[0], m[1]], [m[2], m[3], m[4]], [m[5], m[6], m[7]]])
+            beta, beta_var = self._scale(obs, rates, M_hat, g0, g1, use, params)
+            M = beta * M_hat  # Eq. (37)
+
+        r = Z - H @ m
+        s2 = float(r @ r / max(len(Z) - 8 - len(use) * 2, 1))  # each turn's G has rank 1
+        m_cov = s2 * np.linalg.pinv(H.T @ H)
+        J = np.zeros((9, 9))  # d vec(M) / d (m, beta)
+        for col, idx in enumerate([1, 2, 3, 4, 5, 6, 7, 8]):
+            J[idx, col] = beta
+        J[:, 8] = M_hat.ravel()
+        cov_mb = np.zeros((9, 9))
+        cov_mb[:8, :8], cov_mb[8, 8] = m_cov, beta_var
+        cov = np.full((12, 12), 0.0)
+        cov[:9, :9] = J @ cov_mb @ J.T
+        b0 = obs.bias.mean(axis=0)
+        cov[9:, 9:] = np.cov(obs.bias.T) / len(obs.bias) if len(obs.bias) > 1 else np.nan
+        details = {
+            "n_turns_used": len(use), "n_turns": len(obs.turns),
+            "exact_rotation": params.exact_rotation, "beta": float(beta),
+            "scale_from": "roll turn (eq. 37)" if obs.roll_turn is not None else "all turns",
+            "max_turn_deg": float(np.degrees(np.linalg.norm(
+                rotations_of(used, M, True), axis=1)).max()),
+        }
+        return TriadFit(M, b0, cov, details)
+
+    @staticmethod
+    def _scale(obs, rates, M_hat, g0, g1, use, params) -> tuple[float, float]:
+        """Scale beta of eq. (37) and its variance: the roll turn alone, else all turns."""
+        exact = params.exact_rotation
+        sel = [obs.roll_turn] if obs.roll_turn is not None else list(use)
+        phis = rotations_of([rates[j] for j in sel], M_hat, True)
+        if obs.roll_turn is None:
+            small = np.degrees(np.linalg.norm(phis, axis=1)) <= params.max_scale_turn_deg
+            if small.sum() < 1:
+                raise SolverError(f"gyro: no turn below {params.max_scale_turn_deg} deg to fix the "
+                                  "scale; give the roll turn (eq. 37) or record small turns")
+            sel = [j for j, keep in zip(sel, small, strict=True) if keep]
+        chosen = [rates[j] for j in sel]
+        phis = rotations_of(chosen, M_hat, exact)
+        if obs.roll_turn is not None:
+            d_gamma = np.arccos(np.clip(g0[sel[0]] @ g1[sel[0]], -1, 1))
+            return float(d_gamma / np.linalg.norm(phis[0])), 0.0  # Eq. (37)
+        s, d = g0[sel] + g1[sel], g1[sel] - g0[sel]
+        c = np.cross(0.5 * phis, s)
+        beta0 = float(-np.sum(c * d) / np.sum(c * c))  # small-angle LS of eq. (38)
+
+        def cost(beta: float) -> float:
+            # exact: re-integrate the scaled rates (a scale does not commute with coning)
+            ph = rotations_of(chosen, beta * M_hat, True) if exact else beta * phis
+            Y = np.array([gibbs_of(p, exact) for p in ph])
+            return float(np.sum(rodrigues_error(g0[sel], g1[sel], Y) ** 2))
+
+        if exact:
+            beta0 = float(minimize_scalar(cost, bracket=(0.99 * beta0, beta0), tol=1e-10).x)
+        s2 = cost(beta0) / max(3 * len(sel) - 1, 1)
+        return beta0, float(s2 / np.sum(c * c))
+
+
+COMPONENTS = [GyroRodrigues()]

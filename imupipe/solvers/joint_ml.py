@@ -1,0 +1,296 @@
+"""Joint maximum-likelihood refinement of accelerometer and gyroscope (beyond both papers).
+
+One estimator over every rest and every turn. The unknowns are the
+accelerometer's forward matrix ``S_a`` (lower-triangular: the accelerometer
+frame is the reference, Eq. (1.3) of Chikrin & Golousov) and bias ``b_a``, the
+gyroscope's correction ``M_g`` and bias ``b_g``, and, as nuisance parameters,
+the true gravity direction ``u_i`` at every rest. The measurements, each
+whitened by its own noise::
+
+    accel mean at rest i    y_a,i = S_a (g u_i) + b_a          cov: rest covariance / count
+    gyro mean at rest i     y_g,i = b_g                        cov: rest covariance / count
+    turn j from p to q      u_q = R_j(M_g, b_g)^T u_p          cov: integrated gyro noise
+
+so the estimate is maximum likelihood for white sensor noise, and its
+covariance is ``(J^T J)^-1`` of the whitened Jacobian at the optimum (the
+Cramer-Rao bound when evaluated at the truth). The earth's rotation is not in
+the model (15 deg/h; it biases ``b_g`` by its projection).
+
+It starts from any answer (method A's or B's). A start in another frame (not
+lower-triangular) is moved to the lower-triangular gauge, refined, and turned
+back, so the result keeps the frame convention of the start; the covariance is
+then conditional on that frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..components import Params
+from ..errors import SolverError
+from ..models import T_REF_C, TriadCalibration
+from ..observations import Rests, TriadFit, Turns
+from .rotation_integration import pad_turns, rotation_angle, turn_rotations
+from .triad_covariance import shape_basis
+
+N_MAIN = 21  # S_a (6), b_a (3), M_g (9), b_g (3)
+_LOWER = shape_basis(lower=True)  # (6, 3, 3)
+
+
+class JointMLParams(Params):
+    max_nfev: int = 30
+    """Gauss-Newton / Levenberg-Marquardt iterations allowed."""
+    keep_frame: bool = True
+    """Return the result in the frame of the starting calibration (else the lower-triangular one)."""
+
+
+@dataclass(frozen=True)
+class JointObservations:
+    """What ``refine_joint`` hands to a ``joint`` solver.
+
+    ``rests``/``turns`` as segmented (raw, sensor axes, SI); ``gravity`` the
+    local magnitude m/s^2; ``accel``/``gyro`` the starting calibrations (their
+    temperature coefficients ``k`` are kept and applied, not refined).
+    """
+
+    rests: Rests
+    turns: Turns
+    gravity: float
+    accel: TriadCalibration
+    gyro: TriadCalibration
+
+
+@dataclass(frozen=True)
+class JointFit:
+    """``triads``: refined ``TriadFit`` per sensor; ``cov`` (24, 24) over
+    ``(M_a.ravel(), b_a, M_g.ravel(), b_g)``; ``details`` fit statistics."""
+
+    triads: dict[str, TriadFit]
+    cov: np.ndarray
+    details: dict[str, Any] = field(default_factory=dict)
+
+
+def tangent_basis(u: np.ndarray) -> np.ndarray:
+    """(n, 3, 2) orthonormal bases of the planes normal to unit vectors ``u`` (n, 3)."""
+    helper = np.where(np.abs(u[:, [0]]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+    e1 = np.cross(u, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(u, e1)
+    return np.stack([e1, e2], axis=-1)
+
+
+def _whitener(cov: np.ndarray) -> np.ndarray:
+    """(n, k, k) ``L^-1`` with ``L L^T = cov`` (n, k, k)."""
+    return np.linalg.inv(np.linalg.cholesky(cov))
+
+
+class JointProblem:
+    """The whitened residuals and Jacobian of the joint likelihood.
+
+    ``x = (S_a lower (6), b_a (3), M_g (9), b_g (3), delta (n, 2))``; the rest
+    directions are ``u_i = normalise(u0_i + B_i delta_i)``. Built once; the
+    turn weights are fixed at the start so the cost is one quadratic form.
+    """
+
+    def __init__(self, rests: Rests, turns: Turns, gravity: float, S_a: np.ndarray, b_a: np.ndarray,
+                 M_g: np.ndarray, b_g: np.ndarray, k_a: np.ndarray | None = None,
+                 k_g: np.ndarray | None = None, u0: np.ndarray | None = None):
+        self.g = float(gravity)
+        n = len(rests)
+        T = np.where(np.isfinite(rests.temperature), rests.temperature, T_REF_C) - T_REF_C
+        k_a = np.zeros(3) if k_a is None else k_a
+        k_g = np.zeros(3) if k_g is None else k_g
+        self.y_a = rests.need("accel") - np.outer(T, k_a)
+        self.y_g = rests.need("gyro") - np.outer(T, k_g)
+        self.W_a = _whitener(rests.cov_of_mean("accel"))
+        self.W_g = _whitener(rests.cov_of_mean("gyro"))
+        self.p, self.q = np.asarray(turns.before), np.asarray(turns.after)
+        rate, self.dt = pad_turns(turns.t, turns.gyro)
+        T_turn = 0.5 * (T[self.p] + T[self.q])
+        self.rate = rate - (T_turn[:, None] * k_g)[:, None, :] * (self.dt[..., None] > 0)
+        if u0 is None:
+            u0 = (self.y_a - b_a) @ np.linalg.inv(S_a).T
+        self.u0 = u0 / np.linalg.norm(u0, axis=1, keepdims=True)
+        self.B = tangent_basis(self.u0)
+        # Turn noise: white gyro noise integrated over the turn, Eq. in docs/method-b.md.
+        sigma_g = np.median(rests.cov["gyro"], axis=0)
+        sum_dt2 = np.sum(self.dt**2, axis=1)
+        cov_phi = sum_dt2[:, None, None] * (M_g @ sigma_g @ M_g.T)
+        Rs = turn_rotations((self.rate - b_g) @ M_g.T, self.dt)
+        v = np.einsum("mji,mj->mi", Rs, self.u0[self.p])
+        Vx = _skew(v)
+        Eq = self.B[self.q]
+        cov2 = np.einsum("mia,mij,mjk,mlk,mlb->mab", Eq, Vx, cov_phi, Vx, Eq)
+        self.W_t = _whitener(cov2 + 1e-30 * np.eye(2))
+        self.n = n
+        self.x0 = np.concatenate([S_a[np.tril_indices(3)], b_a, M_g.ravel(), b_g, np.zeros(2 * n)])
+
+    # ------------------------------------------------------------------ model
+    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
+        S_a = np.zeros((3, 3))
+        S_a[np.tril_indices(3)] = x[:6]
+        delta = x[N_MAIN:].reshape(self.n, 2)
+        v = self.u0 + np.einsum("nij,nj->ni", self.B, delta)
+        return S_a, x[6:9], x[9:18].reshape(3, 3), x[18:21], v
+
+    def _rotations(self, M_g: np.ndarray, b_g: np.ndarray) -> np.ndarray:
+        return turn_rotations((self.rate - b_g) @ M_g.T, self.dt)
+
+    def _turn_res(self, R: np.ndarray, u: np.ndarray) -> np.ndarray:
+        d = np.einsum("mji,mj->mi", R, u[self.p]) - u[self.q]
+        return np.einsum("mab,mib,mi->ma", self.W_t, self.B[self.q], d)
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        S_a, b_a, M_g, b_g, v = self.unpack(x)
+        u = v / np.linalg.norm(v, axis=1, keepdims=True)
+        r_a = np.einsum("nij,nj->ni", self.W_a, self.y_a - self.g * u @ S_a.T - b_a)
+        r_g = np.einsum("nij,nj->ni", self.W_g, self.y_g - b_g)
+        r_t = self._turn_res(self._rotations(M_g, b_g), u)
+        return np.concatenate([r_a.ravel(), r_g.ravel(), r_t.ravel()])
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """Dense (N, 21 + 2n): analytic except the gyro columns (central differences)."""
+        S_a, _, M_g, b_g, v = self.unpack(x)
+        n, m = self.n, len(self.p)
+        nv = np.linalg.norm(v, axis=1)
+        u = v / nv[:, None]
+        # du/ddelta = (I - u u^T) B / |v|
+        du = np.einsum("nij,njk->nik", np.eye(3) - np.einsum("ni,nj->nij", u, u), self.B) / nv[:, None, None]
+        P = N_MAIN + 2 * n
+        J = np.zeros((3 * n + 3 * n + 2 * m, P))
+        ra = slice(0, 3 * n)
+        J_a = np.zeros((n, 3, P))
+        J_a[:, :, :6] = -self.g * np.einsum("nij,kjl,nl->nik", self.W_a, _LOWER, u)
+        J_a[:, :, 6:9] = -self.W_a
+        idx = np.arange(n)
+        blk = -self.g * np.einsum("nij,jk,nkl->nil", self.W_a, S_a, du)  # (n, 3, 2)
+        for c in range(2):
+            J_a[idx, :, N_MAIN + 2 * idx + c] = blk[:, :, c]
+        J[ra] = J_a.reshape(3 * n, P)
+        J_g = np.zeros((n, 3, P))
+        J_g[:, :, 18:21] = -self.W_g
+        J[3 * n: 6 * n] = J_g.reshape(3 * n, P)
+        R = self._rotations(M_g, b_g)
+        WE = np.einsum("mab,mib->mai", self.W_t, self.B[self.q])  # (m, 2, 3)
+        J_t = np.zeros((m, 2, P))
+        dp = np.einsum("mai,mji,mjk->mak", WE, R, du[self.p])
+        dq = -np.einsum("mai,mik->mak", WE, du[self.q])
+        jt = np.arange(m)
+        for c in range(2):
+            J_t[jt, :, N_MAIN + 2 * self.p + c] += dp[:, :, c]
+            J_t[jt, :, N_MAIN + 2 * self.q + c] += dq[:, :, c]
+        theta = np.concatenate([M_g.ravel(), b_g])
+        for c in range(12):
+            h = 1e-6 * max(1.0, abs(theta[c]))
+            cols = []
+            for sgn in (1.0, -1.0):
+                t = theta.copy()
+                t[c] += sgn * h
+                cols.append(self._turn_res(self._rotations(t[:9].reshape(3, 3), t[9:]), u))
+            J_t[:, :, 9 + c] = (cols[0] - cols[1]) / (2 * h)
+        J[6 * n:] = J_t.reshape(2 * m, P)
+        return J
+
+    # ------------------------------------------------------------------ output
+    def output_jacobian(self, x: np.ndarray) -> np.ndarray:
+        """(24, 21): d(M_a.ravel, b_a, M_g.ravel, b_g) / d(S_a lower, b_a, M_g, b_g)."""
+        S_a = self.unpack(x)[0]
+        M_a = np.linalg.inv(S_a)
+        G = np.zeros((24, N_MAIN))
+        G[:9, :6] = -np.einsum("ij,kjl,lm->kim", M_a, _LOWER, M_a).reshape(6, 9).T
+        G[9:12, 6:9] = np.eye(3)
+        G[12:24, 9:21] = np.eye(12)
+        return G
+
+    def covariance(self, x: np.ndarray) -> np.ndarray:
+        """(24, 24) ``(J^T J)^-1`` at ``x`` marginalised over the rest directions, output layout."""
+        J = self.jacobian(x)
+        C = np.linalg.inv(J.T @ J)[:N_MAIN, :N_MAIN]
+        G = self.output_jacobian(x)
+        return G @ C @ G.T
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    z = np.zeros(len(v))
+    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], -1), np.stack([v[:, 2], z, -v[:, 0]], -1),
+                     np.stack([-v[:, 1], v[:, 0], z], -1)], -2)
+
+
+def lower_gauge(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(L, Q)``: lower-triangular ``L`` and rotation ``Q`` with ``S = L Q`` (``L L^T = S S^T``)."""
+    L = np.linalg.cholesky(S @ S.T)
+    return L, np.linalg.solve(L, S)
+
+
+def rotate_cov(cov: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Covariance (24, 24) of the output after ``M_a -> Q^T M_a``, ``M_g -> Q^T M_g``."""
+    A = np.eye(24)
+    K = np.kron(Q.T, np.eye(3))  # (Q^T M).ravel() = K M.ravel()
+    A[:9, :9] = K
+    A[12:21, 12:21] = K
+    return A @ cov @ A.T
+
+
+class JointML:
+    """Solver ``joint_ml`` (kind ``joint``)."""
+
+    name = "joint_ml"
+    kind = "joint"
+    version = "1"
+    params: ClassVar[type[Params]] = JointMLParams
+
+    def solve(self, observations: JointObservations, params: JointMLParams) -> JointFit:
+        obs = observations
+        if len(obs.turns) < 5 or len(obs.rests) < 9:
+            raise SolverError(
+                f"joint_ml: {len(obs.rests)} rests and {len(obs.turns)} turns; the joint fit needs "
+                "at least 9 rests and 5 turns about all three axes"
+            )
+        S0, Q = lower_gauge(obs.accel.S)
+        M_g0 = Q @ obs.gyro.M  # the gyro follows the accelerometer into the lower gauge
+        prob = JointProblem(obs.rests, obs.turns, obs.gravity, S0, obs.accel.b0, M_g0, obs.gyro.b0,
+                            obs.accel.k, obs.gyro.k)
+        sol = least_squares(prob.residuals, prob.x0, jac=prob.jacobian, method="lm",
+                            max_nfev=params.max_nfev, x_scale="jac")
+        x = sol.x
+        S_a, b_a, M_g, b_g, _ = prob.unpack(x)
+        J = sol.jac
+        JtJ = J.T @ J
+        if np.linalg.cond(JtJ) > 1e14:
+            raise SolverError("joint_ml: the rests and turns do not determine all 21 constants; "
+                              "record rests over the whole sphere and turns about all three axes")
+        C = np.linalg.inv(JtJ)[:N_MAIN, :N_MAIN]
+        G = prob.output_jacobian(x)
+        cov = G @ C @ G.T
+        chi2 = float(sol.fun @ sol.fun)
+        dof = len(sol.fun) - len(x)
+        inflation = max(1.0, chi2 / dof) if dof > 0 else 1.0
+        cov = cov * inflation
+        M_a = np.linalg.inv(S_a)
+        R = prob._rotations(M_g, b_g)
+        if params.keep_frame:
+            M_a, M_g = Q.T @ M_a, Q.T @ M_g
+            cov = rotate_cov(cov, Q)
+        n = len(obs.rests)
+        r = sol.fun
+        details = {
+            "chi2": chi2, "dof": dof, "chi2_per_dof": chi2 / dof if dof > 0 else float("nan"),
+            "inflation": inflation, "iterations": int(sol.nfev), "converged": bool(sol.success),
+            "rms_whitened": {"accel": float(np.sqrt(np.mean(r[: 3 * n] ** 2))),
+                             "gyro_rest": float(np.sqrt(np.mean(r[3 * n: 6 * n] ** 2))),
+                             "turn": float(np.sqrt(np.mean(r[6 * n:] ** 2)))},
+            "turn_angle_deg_max": float(np.degrees(rotation_angle(R)).max()),
+            "rests": n, "turns": len(obs.turns),
+        }
+        triads = {
+            "accel": TriadFit(M_a, b_a, cov[:12, :12], {"refined_by": "joint_ml"}),
+            "gyro": TriadFit(M_g, b_g, cov[12:, 12:], {"refined_by": "joint_ml"}),
+        }
+        return JointFit(triads, cov, details)
+
+
+COMPONENTS = [JointML()]

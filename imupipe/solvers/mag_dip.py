@@ -1,0 +1,117 @@
+"""Method A magnetometer: ellipsoid, then rotation and scale tied to gravity by the dip (eqs. 21-25).
+
+The corrected gravity and the field keep a constant dot product, the field's
+vertical component ``B1 = -sin(dip)`` (normal frame Y up, field pointing down
+in the northern hemisphere). Eqs. (22)-(23) solve a general 3x3 matrix; it is
+projected to the nearest rotation, and the scale is eq. (24).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from ..components import Params
+from ..errors import SolverError
+from ..observations import EllipsoidObservations, TriadFit
+from ._rotation import nearest_rotation
+from .ellipsoid_cholesky import MIN_COVERAGE, MIN_POSITIONS, coverage, fit_ellipsoid, jacobian
+
+
+class MagDipParams(Params):
+    """``min_positions``, ``min_coverage``: refusal thresholds of the ellipsoid fit."""
+
+    min_positions: int = MIN_POSITIONS
+    min_coverage: float = MIN_COVERAGE
+
+
+def circle_dip(unit_fields: list[np.ndarray]) -> tuple[float, list[float]]:
+    """Dip (rad) from turntable circles: ``pi/2 - asin(mean R_i)`` (paper, Fig. 4c).
+
+    Each item: (k, 3) unit field vectors of one full turn of the rig base; the
+    circle's radius is the distance of the points from their best-fit plane's axis.
+    """
+    radii = []
+    for pts in unit_fields:
+        c = pts.mean(axis=0)
+        _, _, Vt = np.linalg.svd(pts - c)
+        n = Vt[2]
+        # radius from the points' distance to the axis through c along n
+        off = pts - c
+        radii.append(float(np.sqrt(np.mean(np.sum(off**2, axis=1) - (off @ n) ** 2))))
+    return float(np.pi / 2 - np.arcsin(np.clip(np.mean(radii), 0, 1))), radii
+
+
+class MagDip:
+    """Magnetometer solver of method A: ``solve(EllipsoidObservations) -> TriadFit``.
+
+    Needs ``obs.gravity`` (corrected unit gravity per rest). The dip is taken from
+    ``obs.dip_rad``, else from ``obs.circles`` (indices into ``obs.y`` are not
+    used: circles are given as unit field point sets through ``details``), else
+    estimated from the rests themselves: the unconstrained LS of eq. (23) with
+    ``B1 = 1`` gives a matrix whose size fixes ``B1``.
+    """
+
+    name = "ellipsoid_dip"
+    kind = "mag"
+    version = "1"
+    params: ClassVar[type[Params]] = MagDipParams
+
+    def solve(self, obs: EllipsoidObservations, params: MagDipParams) -> TriadFit:
+        if obs.gravity is None:
+            raise SolverError(
+                "mag: the dip-angle rotation (eqs. 21-23) needs the corrected accelerometer at the "
+                "same rests; wire the accel calibration into the mag stage"
+            )
+        shape = fit_ellipsoid(obs.y, "mag", params.min_positions, params.min_coverage)
+        u = obs.y / shape.scale
+        g = obs.gravity / np.linalg.norm(obs.gravity, axis=1, keepdims=True)
+
+        def solve_from(d: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+            from .ellipsoid_cholesky import shape_from_d
+
+            _, b, L, _ = shape_from_d(d)
+            B_hat = (u - b) @ L  # rows: L^T (m - b), analogue of eq. (17)
+            V = np.einsum("ki,kj->kij", g, B_hat).reshape(len(u), 9)  # Eq. (22): rows m_k
+            if obs.dip_rad is not None:
+                B1, dip_source = -np.sin(obs.dip_rad), "given"
+                r, *_ = np.linalg.lstsq(V, np.full(len(u), B1), rcond=None)  # Eq. (23)
+                A = r.reshape(3, 3)
+            else:
+                r, *_ = np.linalg.lstsq(V, np.ones(len(u)), rcond=None)
+                A1 = r.reshape(3, 3)
+                # A1 = R / (rho B1): its singular values give 1 / (rho |B1|), sign from det
+                sv = np.linalg.svd(A1, compute_uv=False).mean()
+                rho_fit = np.mean(np.linalg.norm(B_hat, axis=1))
+                B1 = float(np.sign(np.linalg.det(A1)) / (sv * rho_fit))
+                A = A1 * B1
+                dip_source = "estimated from the rests"
+            R = nearest_rotation(A)
+            beta = len(u) / np.sum(np.linalg.norm(B_hat, axis=1))  # Eq. (24)
+            Mn = beta * R @ L.T  # Eq. (25)
+            return Mn, b * shape.scale, {"B1": float(B1), "dip_source": dip_source,
+                                         "beta": float(beta)}
+
+        Mn, b, info = solve_from(shape.d)
+        unit = obs.magnitude / shape.scale
+        M = unit * Mn
+
+        def pack(d: np.ndarray) -> np.ndarray:
+            m, bb, _ = solve_from(d)
+            return np.concatenate([(unit * m).ravel(), bb])
+
+        cov = (J := jacobian(pack, shape.d)) @ shape.d_cov @ J.T
+        corrected = (obs.y - b) @ M.T / obs.magnitude
+        dots = np.sum(corrected * g, axis=1)
+        details = {
+            **info, "dip_deg": float(np.degrees(np.arcsin(np.clip(-info["B1"], -1, 1)))),
+            "dot_residual_rms": float(np.std(dots - info["B1"])),
+            "n_positions": len(obs.y), "coverage": coverage(obs.y - b),
+            "algebraic_residual_rms": shape.residual_rms, "magnitude": obs.magnitude,
+            "normalised": obs.magnitude == 1.0,
+        }
+        return TriadFit(M, b, cov, details)
+
+
+COMPONENTS = [MagDip()]

@@ -1,0 +1,113 @@
+"""Gyroscope calibration from rests and the turns between them (method A: eqs. 26-37).
+
+Gravity at each rest comes from the calibrated accelerometer, so the gyro ends up
+in the accelerometer's instrument frame. The bias at T_ref is the mean over the
+rests of the rest gyro means minus ``k (T - 25)`` when the thermal stage is wired.
+Residuals: per rest, the measured gyro mean vs the bias model; per turn, gravity
+after the turn vs gravity before rotated by the calibrated gyro.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+import pyarrow as pa
+from pydantic import Field
+
+from ..components import BoundSolver, Params, Stage
+from ..models import triads_to_table
+from ..observations import GyroObservations, Rests, Turns
+from ..solvers._rotation import integrate_rotations
+from ._calib_common import (
+    concat_residuals,
+    dT,
+    need_triad,
+    noise_details,
+    residual_table,
+    thermal_k,
+)
+
+
+class GyroParams(Params):
+    """``roll_turn``: index of the paper's scale turn (eq. 37), None: scale from all turns;
+    ``roll_turn_time_s``: or a time inside it (s since the session start);
+    ``max_turn_s``: motions longer than this (e.g. a carry to the turntable) are left out."""
+
+    roll_turn: int | None = None
+    roll_turn_time_s: float | None = None
+    max_turn_s: float = 30.0
+    solver: str = "gyro_rodrigues"
+    solver_params: dict = Field(default_factory=dict)
+
+
+def rest_gravity(inputs: Mapping[str, pa.Table], rests: Rests, stage: str) -> np.ndarray:
+    """(n, 3) unit gravity per rest from the calibrated accelerometer."""
+    acc = need_triad(inputs, "accel", "accel", stage)
+    g = acc.apply(rests.need("accel"), rests.temperature)
+    return g / np.linalg.norm(g, axis=1, keepdims=True)
+
+
+def turn_subset(turns: Turns, p: GyroParams) -> tuple[Turns, int | None]:
+    keep = np.array([len(t) > 1 and (t[-1] - t[0]) <= p.max_turn_s for t in turns.t], dtype=bool)
+    roll = p.roll_turn
+    if roll is None and p.roll_turn_time_s is not None:
+        inside = [j for j, t in enumerate(turns.t) if len(t) and t[0] <= p.roll_turn_time_s <= t[-1]]
+        roll = inside[0] if inside else None
+    if roll is not None:
+        keep[roll] = True
+        roll = int(np.cumsum(keep)[roll] - 1)
+    return turns.subset(keep), roll
+
+
+def calibrate_gyro(inputs: Mapping[str, pa.Table], params: GyroParams, solver: BoundSolver | None):
+    rests = Rests.from_table(inputs["rests"])
+    turns, roll = turn_subset(Turns.from_tables(inputs["turns"], inputs["gyro"], rests.t0_ns), params)
+    gravity = rest_gravity(inputs, rests, "calibrate_gyro")
+    bias = rests.need("gyro")
+    obs = GyroObservations(gravity, bias, rests.cov_of_mean("gyro"), turns, rests.temperature, roll)
+    fit = solver.solve(obs)
+    k, sigma_k = thermal_k(inputs, "gyro")
+    corrected = bias - np.outer(dT(rests.temperature), k)
+    b0 = corrected.mean(axis=0)
+    sd_b0 = corrected.std(axis=0, ddof=1) / np.sqrt(len(corrected)) if len(corrected) > 1 \
+        else np.full(3, np.nan)
+    cal = fit.to_calibration("gyro", solver.solver.name, k=k, sigma_k=sigma_k, extra={
+        "sigma_b0": sd_b0.tolist(), "noise": noise_details(rests, "gyro"),
+        "roll_turn": roll,
+    })
+    cal = type(cal)("gyro", cal.M, b0, cal.k, cal.T_ref_C, cal.solver, cal.details)
+    mid = 0.5 * (rests.t_start_s + rests.t_end_s)
+    sigma = np.sqrt(np.diagonal(rests.cov_of_mean("gyro"), axis1=1, axis2=2))
+    res_rest = residual_table("calibrate_gyro", "gyro", "rest", mid, rests.temperature, bias,
+                              cal.bias(rests.temperature), sigma)
+    # per turn: gravity after vs gravity before carried through the calibrated rotation
+    ws = [(w - 0.5 * (bias[b] + bias[a])) @ cal.M.T
+          for w, b, a in zip(turns.gyro, turns.before, turns.after, strict=True)]
+    q = integrate_rotations(list(turns.t), ws)
+    g0, g1 = gravity[turns.before], gravity[turns.after]
+    pred = np.array([rotate_inverse(qi, gi) for qi, gi in zip(q, g0, strict=True)]).reshape(-1, 3)
+    res_turn = residual_table("calibrate_gyro", "gyro", "turn",
+                              np.array([0.5 * (t[0] + t[-1]) for t in turns.t]),
+                              np.full(len(turns), np.nan), g1, pred, None)
+    return {"calibration": triads_to_table([cal]), "residuals": concat_residuals([res_rest, res_turn])}
+
+
+def rotate_inverse(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """A world-fixed vector seen in the body after the body turned by ``q``: ``R(q)^T v``."""
+    w, x, y, z = q
+    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                  [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                  [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    return R.T @ v
+
+
+STAGE = Stage(
+    name="calibrate_gyro", version="1", func=calibrate_gyro,
+    inputs={"rests": "rests", "turns": "turns", "gyro": "gyro", "accel": "calibration",
+            "thermal": "calibration"},
+    outputs={"calibration": "calibration", "residuals": "residuals"}, params=GyroParams,
+    optional_inputs=frozenset({"thermal"}), solver_kind="gyro",
+    description="gyroscope M, b0 from turns between rests, in the accelerometer's frame",
+)
+COMPONENTS = [STAGE]

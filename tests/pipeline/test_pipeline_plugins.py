@@ -1,0 +1,98 @@
+"""The plugin registry as the pipeline relies on it: duplicates, reader choice, ``imupipe plugins``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pipeline_toys
+import pytest
+
+import imupipe.plugins
+from imupipe import cli
+from imupipe.errors import PluginError, ReaderError
+from imupipe.hookspecs import hookimpl
+from imupipe.ingest import choose_reader, read_recording
+from imupipe.plugins import make_registry
+
+
+class _Reader:
+    suffixes = (".arrowsession",)
+
+    def __init__(self, name):
+        self.name = name
+
+    def sniff(self, path, head):
+        return Path(path).suffix == ".arrowsession"
+
+    def read(self, path):
+        return pipeline_toys.ArrowSessionReader().read(path)
+
+
+class _ReaderPlugin:
+    def __init__(self, name):
+        self.reader = _Reader(name)
+
+    @hookimpl
+    def imupipe_register_readers(self, register):
+        register(self.reader)
+
+
+def test_duplicate_component_names_name_both_plugins():
+    class Again:
+        @hookimpl
+        def imupipe_register_stages(self, register):
+            register(pipeline_toys.make_scale())
+
+    pm_first, pm_second = pipeline_toys.ToyPlugin(), Again()
+    with pytest.raises(PluginError) as info:
+        make_registry([pm_first, pm_second], entry_points_too=False)
+    message = str(info.value)
+    assert "two plugins register a stage named 'toy_scale'" in message
+    # both plugins are named (pluggy names a plugin object registered without a name by its id)
+    assert f"'{id(pm_first)}' and '{id(pm_second)}'" in message
+    assert "uninstall one" in message
+
+
+def test_two_claimants_is_an_error_naming_both(tmp_path):
+    registry = make_registry([_ReaderPlugin("one"), _ReaderPlugin("two")], entry_points_too=False)
+    path = pipeline_toys.write_session(tmp_path / "s.arrowsession")
+    with pytest.raises(ReaderError, match="readers 'one' and 'two' both claim this file"):
+        choose_reader(path, registry)
+
+
+def test_reader_choice_is_a_firstresult_hook_a_plugin_can_win(tmp_path):
+    class Chooser:
+        def __init__(self):
+            self.asked = []
+
+        @hookimpl
+        def imupipe_choose_reader(self, path, head, readers):
+            self.asked.append(sorted(readers))
+            return "two" if path.suffix == ".arrowsession" else None
+
+    chooser = Chooser()
+    registry = make_registry([_ReaderPlugin("one"), _ReaderPlugin("two"), chooser], entry_points_too=False)
+    path = pipeline_toys.write_session(tmp_path / "s.arrowsession", streams=("accel",))
+    assert choose_reader(path, registry).name == "two"  # the built-in (trylast) never sees the tie
+    assert chooser.asked == [["one", "two"]]
+    assert set(read_recording(path, registry).device()) == {"accel"}
+
+
+def test_imupipe_plugins_lists_name_distribution_version_and_provides(monkeypatch, capsys):
+    real = make_registry()  # entry points: the built-ins come through the same door as plugins
+    names = {c.plugin for c in real.all()}
+    assert "builtin_exporters" in names and "builtin_executors" in names
+    monkeypatch.setattr(imupipe.plugins, "make_registry",
+                        lambda *a, **k: make_registry([pipeline_toys], entry_points_too=True))
+    assert cli.main(["plugins"]) == 0
+    text = capsys.readouterr().out
+    lines = text.splitlines()
+    i = next(i for i, line in enumerate(lines) if line.startswith("builtin_executors"))
+    assert f"(imupipe {imupipe.__version__})" in lines[i]
+    assert "executor:dask" in lines[i + 1] and "executor:local" in lines[i + 1]
+    j = next(i for i, line in enumerate(lines) if line.startswith("builtin_exporters"))
+    assert "exporter:calibration_json" in lines[j + 1]
+    k = next(i for i, line in enumerate(lines) if "pipeline_toys" in line)
+    assert "(-" in lines[k]  # not from an installed distribution
+    assert "reader:arrowsession" in lines[k + 1] and "stage:toy_scale" in lines[k + 1] \
+        and "solver:toy_mean" in lines[k + 1]

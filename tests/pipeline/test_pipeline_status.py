@@ -1,0 +1,77 @@
+"""``imupipe status``: what is stale and why, decided before anything runs."""
+
+from __future__ import annotations
+
+from pipeline_toys import TOY_PIPELINE, write_session
+
+from imupipe import cli
+from imupipe.pipeline import api
+from imupipe.pipeline.api import run_sessions, status
+
+
+def _lines(text: str) -> dict[str, str]:
+    """stage -> 'state  reasons' from the status text of one session."""
+    out = {}
+    for line in text.splitlines()[1:]:
+        state, stage, *rest = line.split(None, 2)
+        out[stage] = f"{state} {' '.join(rest)}".strip()
+    return out
+
+
+def test_status_before_and_after_a_run(tmp_path, toy_registry, toy_pipeline, session):
+    registry, counter = toy_registry()
+    out = tmp_path / "out"
+    before = _lines(status([session], toy_pipeline, out, registry=registry))
+    assert before == {k: "stale never run" for k in ("scaled", "accel", "gyro", "mag")}
+    assert counter.ran == []  # status runs nothing
+
+    run_sessions([session], toy_pipeline, out, quiet=True, registry=registry)
+    after = status([session], toy_pipeline, out, registry=registry)
+    assert after.splitlines()[0].endswith("0 stale, 4 fresh")
+    assert set(_lines(after).values()) == {"fresh"}
+
+
+def test_status_says_why(tmp_path, toy_registry, toy_pipeline, session):
+    out = tmp_path / "out"
+    run_sessions([session], toy_pipeline, out, quiet=True, registry=toy_registry()[0])
+
+    registry, _ = toy_registry(bias_version="2")
+    lines = _lines(status([session], toy_pipeline, out, registry=registry))
+    assert lines["gyro"] == "stale version changed 1 -> 2"
+    assert lines["scaled"] == "fresh"
+
+    toy_pipeline.write_text(TOY_PIPELINE.replace("factor = 1.0", "factor = 2.5")
+                            .replace("scale = 1.0", "scale = 2.0"))
+    registry, counter = toy_registry()
+    lines = _lines(status([session], toy_pipeline, out, registry=registry))
+    assert lines["scaled"] == "stale param factor changed 1.0 -> 2.5"
+    assert lines["accel"].startswith("stale upstream 'scaled' is stale")
+    assert lines["mag"] == "stale solver param scale changed 1.0 -> 2.0"
+    assert lines["gyro"] == "fresh"
+
+    toy_pipeline.write_text(TOY_PIPELINE)
+    write_session(session, seed=5)
+    lines = _lines(status([session], toy_pipeline, out, registry=registry))
+    assert lines["gyro"] == "stale input 'samples' changed (the session file changed)"
+    assert counter.ran == []
+
+
+def test_status_with_no_session_uses_those_run_in_out(tmp_path, toy_registry, toy_pipeline, session):
+    registry, _ = toy_registry()
+    out = tmp_path / "out"
+    assert "no sessions have been run here" in status([], toy_pipeline, out, registry=registry)
+    nomag = write_session(tmp_path / "nomag.arrowsession", streams=("accel", "gyro"))
+    run_sessions([session, nomag], toy_pipeline, out, quiet=True, registry=registry)
+    text = status([], toy_pipeline, out, registry=registry)
+    heads = [line for line in text.splitlines() if not line.startswith(" ")]
+    assert len(heads) == 2 and any("s1.arrowsession" in h for h in heads)
+    assert "skipped mag     the session has no 'mag' stream" in text
+    assert "stale" not in text.replace("0 stale", "")
+
+
+def test_cli_status(tmp_path, toy_registry, toy_pipeline, session, monkeypatch, capsys):
+    registry, _ = toy_registry()
+    monkeypatch.setattr(api, "make_registry", lambda *a, **k: registry)
+    out = tmp_path / "out"
+    assert cli.main(["status", str(session), "--pipeline", str(toy_pipeline), "--out", str(out)]) == 0
+    assert "stale   scaled" in capsys.readouterr().out

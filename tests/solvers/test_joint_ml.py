@@ -1,0 +1,95 @@
+"""Joint maximum-likelihood refinement: recovery, frame keeping, honest covariance."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/ (import-mode=importlib)
+from method_b_synth import G, make_session
+
+from imupipe.errors import SolverError
+from imupipe.models import TriadCalibration
+from imupipe.solvers.joint_ml import JointML, JointMLParams, JointObservations, JointProblem
+from imupipe.solvers.rotation_integration import quat_to_matrix
+
+ACC_BIAS_TOL_MG = 0.2
+ACC_SHAPE_TOL_PPM = 200.0
+GYRO_SHAPE_TOL_PPM = 600.0
+MG = 9.80665e-3
+Z_MAX = 5.0  # largest error in units of the reported sigma
+
+
+def _start(s, Q=None, error=1e-3, seed=0):
+    """A rough start (errors ~1e-3): lower-triangular accelerometer, turned by Q if given."""
+    rng = np.random.default_rng(seed)
+    Q = np.eye(3) if Q is None else Q
+    S0 = s.S_accel + np.tril(error * rng.normal(size=(3, 3)))
+    Ma = Q @ np.linalg.inv(S0)
+    Mg = Q @ np.linalg.inv(s.S_gyro) @ (np.eye(3) + error * rng.normal(size=(3, 3)))
+    return (TriadCalibration("accel", Ma, s.b_accel + 0.05 * rng.normal(size=3)),
+            TriadCalibration("gyro", Mg, s.b_gyro + 1e-3 * rng.normal(size=3)))
+
+
+def _solve(s, accel, gyro, **params):
+    return JointML().solve(JointObservations(s.rests, s.turns, G, accel, gyro), JointMLParams(**params))
+
+
+def _truth_vector(s):
+    return np.concatenate([np.linalg.inv(s.S_accel).ravel(), s.b_accel,
+                           np.linalg.inv(s.S_gyro).ravel(), s.b_gyro])
+
+
+def test_joint_ml_recovers_both_triads_with_honest_sigmas():
+    s = make_session(11)
+    fit = _solve(s, *_start(s))
+    a, g = fit.triads["accel"], fit.triads["gyro"]
+    assert np.abs(a.M @ s.S_accel - np.eye(3)).max() * 1e6 < ACC_SHAPE_TOL_PPM
+    assert np.abs(a.b0 - s.b_accel).max() / MG < ACC_BIAS_TOL_MG
+    assert np.abs(g.M @ s.S_gyro - np.eye(3)).max() * 1e6 < GYRO_SHAPE_TOL_PPM
+    est = np.concatenate([a.M.ravel(), a.b0, g.M.ravel(), g.b0])
+    sigma = np.sqrt(np.diag(fit.cov))
+    free = sigma > 1e-12  # the three fixed upper entries of the accelerometer
+    assert free.sum() == 21
+    z = np.abs(est - _truth_vector(s))[free] / sigma[free]
+    assert z.max() < Z_MAX, z.max()
+    assert 0.7 < fit.details["chi2_per_dof"] < 1.3
+
+
+def test_joint_ml_keeps_the_frame_of_its_start():
+    s = make_session(12)
+    Q = quat_to_matrix(np.array([0.98, 0.1, -0.12, 0.1]))
+    fit = _solve(s, *_start(s, Q))
+    a, g = fit.triads["accel"], fit.triads["gyro"]
+    assert np.abs(a.M @ s.S_accel - Q).max() < ACC_SHAPE_TOL_PPM * 1e-6  # frame kept
+    assert np.abs(g.M @ s.S_gyro - Q).max() < GYRO_SHAPE_TOL_PPM * 1e-6
+    lower = _solve(s, *_start(s, Q), keep_frame=False).triads["accel"]
+    assert np.allclose(np.triu(np.linalg.inv(lower.M), 1), 0.0, atol=1e-12)
+
+
+def test_covariance_at_truth_is_the_cramer_rao_bound_of_a_monte_carlo():
+    """Empirical RMS error over seeds within 1.5x of sqrt(CRB) (small run; bench has more)."""
+    errs, crb = [], []
+    for seed in range(12):
+        s = make_session(100 + seed, n_rests=25)
+        fit = _solve(s, *_start(s, seed=seed))
+        a, g = fit.triads["accel"], fit.triads["gyro"]
+        errs.append(np.concatenate([a.M.ravel(), a.b0, g.M.ravel(), g.b0]) - _truth_vector(s))
+        prob = JointProblem(s.rests, s.turns, G, s.S_accel, s.b_accel, np.linalg.inv(s.S_gyro),
+                            s.b_gyro, u0=s.gravity_body)
+        crb.append(np.diag(prob.covariance(prob.x0)))
+    bound = np.sqrt(np.mean(crb, axis=0))
+    free = bound > 1e-12
+    ratio = np.sqrt(np.mean(np.square(errs), axis=0))[free] / bound[free]
+    # 12 seeds: a ratio's own scatter is ~20 %, so the mean tests efficiency, the max sanity.
+    assert 0.75 < ratio.mean() < 1.25, ratio
+    assert ratio.max() < 1.8, ratio
+
+
+def test_joint_ml_needs_turns():
+    s = make_session(13, n_rests=4)
+    with pytest.raises(SolverError, match="at least 9 rests and 5 turns"):
+        _solve(s, *_start(s))
