@@ -75,7 +75,9 @@ class EffectBase:
 
     @property
     def sensor(self) -> str:
-        return self.sensors[0] if len(self.sensors) == 1 else " or ".join(self.sensors)
+        """The triad (``components.Effect``); ``any`` when ``sensors`` lists several (pick with
+        the ``sensor`` parameter)."""
+        return self.sensors[0] if len(self.sensors) == 1 else "any"
 
     def validate(self, parameters: Mapping[str, Any] | Params) -> Params:
         """The parameters as this effect's ``params`` model; ``ConfigError`` lists what it expects."""

@@ -44,7 +44,8 @@ MAGIC = b"\x89MCAP0\r\n"
 FOOTER_SIZE = 1 + 8 + 8 + 8 + 4  # opcode, length, summary_start, summary_offset_start, crc
 OP_CHUNK, OP_MESSAGE_INDEX, OP_MESSAGE = 0x06, 0x07, 0x05
 MESSAGE_HEAD = 1 + 8 + 2 + 4 + 8 + 8  # opcode, length, channel, sequence, log_time, publish_time
-RECOVER = "re-record it, or salvage it with `mcap recover FILE -o FIXED.mcap`"
+RECOVER = ("re-record it, or salvage what it holds with the mcap CLI: "
+           "`mcap recover FILE -o FIXED.mcap`")
 
 LOOKAHEAD = 2  # chunks read and decompressed ahead, in a thread, while one is decoded
 COLUMNS = {"accel": ("x", "y", "z"), "gyro": ("x", "y", "z"), "mag": ("x", "y", "z"),
@@ -246,7 +247,8 @@ def _decode_chunk(path: Path, index, raw: bytes, buf: np.ndarray, wanted: dict,
             ops = buf[offsets]
             record = cdr.rows(buf, offsets + 1, 16)  # length u64, channel u16, sequence u32, ...
         except IndexError:
-            raise ReaderError(f"{where}: its message index points past the chunk; {RECOVER}") from None
+            raise ReaderError(f"{where}: its message index points past the chunk; {RECOVER}"
+                              ) from None
         channel = record.view("<u2")[:, 4]
         ok = channel == cids[0] if len(cids) == 1 else np.isin(channel, cids)
         if not ((ops == OP_MESSAGE) & ok).all():
@@ -294,7 +296,7 @@ def _read_generic(f, pieces: Pieces, other: set[str]) -> None:
         if decode is None:
             decode = decoders[channel.id] = factory.decoder_for(channel.message_encoding, schema)
             if decode is None:
-                raise ValueError(f"topic {channel.topic} is not ROS 2 CDR; imupipe reads ROS 2 only")
+                raise ValueError(f"topic {channel.topic} is not ROS 2 CDR; imupipe reads ROS 2")
         msg = decode(message.data)
         stamps, logs, blocks = rows[channel.topic, kind]
         stamps.append((msg.header.stamp.sec, msg.header.stamp.nanosec))
@@ -349,7 +351,8 @@ def split(kind: str, t: np.ndarray, block: np.ndarray) -> dict[str, tuple[np.nda
 
 
 def device_names(keys: Iterable[tuple[str, str]]) -> dict[tuple[str, str], str]:
-    """(topic, kind) -> device: the topic's namespace (``/imu0/imu`` -> ``imu0``, ``/imu`` -> ``imu``).
+    """(topic, kind) -> device: the topic's namespace
+    (``/imu0/imu`` -> ``imu0``; ``/imu`` -> ``imu``).
 
     Two topics of one kind in the same namespace (``/imu/data``, ``/imu/data_raw``)
     cannot share a device; each then keeps its full topic name as device name.
@@ -365,7 +368,8 @@ def device_names(keys: Iterable[tuple[str, str]]) -> dict[tuple[str, str], str]:
         if count[namespace[k], k[1]] > 1:
             names[k] = k[0].strip("/")
             warnings.warn(f"topic {k[0]}: shares namespace {namespace[k]!r} with another "
-                          f"{cdr.KIND_SCHEMA[k[1]]} topic; read as device {names[k]!r}", stacklevel=3)
+                          f"{cdr.KIND_SCHEMA[k[1]]} topic; read as device {names[k]!r}",
+                          stacklevel=3)
     return names
 
 

@@ -48,13 +48,18 @@ def known_effects() -> dict[str, Any]:
 
 
 def resolve_effects(effects: Mapping[str, Mapping[str, Any]] | None) -> dict[str, tuple[Any, Any]]:
-    """Validate ``{identifier: parameters}``; an unknown identifier lists the known ones."""
+    """Validate ``{identifier: parameters}``; an unknown identifier lists the known ones.
+
+    ``identifier:tag`` (e.g. ``warmup_transient:accel``) switches on a second instance of the
+    same effect, e.g. on another triad.
+    """
     catalogue = known_effects()
     resolved = {}
     for name, params in (effects or {}).items():
-        if name not in catalogue:
-            raise ConfigError(f"unknown effect {name!r}; known effects: {', '.join(sorted(catalogue))}")
-        effect = catalogue[name]
+        ident = name.split(":", 1)[0]
+        if ident not in catalogue:
+            raise ConfigError(f"unknown effect {ident!r}; known effects: {', '.join(sorted(catalogue))}")
+        effect = catalogue[ident]
         resolved[name] = (effect, effect.validate(params or {}))
     return resolved
 
@@ -87,7 +92,9 @@ def simulate_arrays(protocol: str = "standard", effects: Mapping[str, Mapping[st
         model = model.model_copy(update={"thermal": model.thermal.model_copy(update=plan.thermal)})
     env = env if isinstance(env, Environment) else Environment(**(env or {}))
     out = engine.run(plan.trajectory, plan.windows, model, env, resolved, seed)
-    return out, make_truth(_truth_dict(protocol, params, seed, model, env, resolved, plan, out))
+    truth = make_truth(_truth_dict(protocol, params, seed, model, env, resolved, plan, out))
+    truth.data["calibration"] = truth.calibration.to_dict()  # the same, as calibration.json has it
+    return out, truth
 
 
 def simulate(protocol: str, effects: dict[str, dict], seed: int, out: Path, quiet: bool) -> list[Path]:

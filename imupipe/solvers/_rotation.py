@@ -120,3 +120,18 @@ def integrate_rotations(ts: list[np.ndarray], ws: list[np.ndarray]) -> np.ndarra
 def rotation_vectors(q: np.ndarray) -> np.ndarray:
     """Rotation vectors (m, 3) rad of quaternions (m, 4)."""
     return np.array([rotation_vector(qi) for qi in q]).reshape(-1, 3)
+
+
+def quat_to_matrices(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (m, 3, 3) of quaternions (m, 4) (w, x, y, z)."""
+    w, x, y, z = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+def carry_gravity(q: np.ndarray, g0: np.ndarray) -> np.ndarray:
+    """(m, 3) world-fixed vectors ``g0`` (m, 3) seen in the body after it turned by ``q`` (m, 4)."""
+    return np.einsum("mji,mj->mi", quat_to_matrices(q), g0)

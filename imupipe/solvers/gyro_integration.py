@@ -17,7 +17,7 @@ gyro ends up in the accelerometer's frame. Rotations are integrated exactly
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -32,10 +32,16 @@ MIN_TURNS = 5  # each turn gives two equations for nine constants
 
 
 class GyroIntegrationParams(Params):
+    bias: Literal["all_rests", "adjacent_rests"] = "all_rests"
+    """all_rests: one bias, the mean over every rest (Eq. (2.15)); adjacent_rests: each turn
+    uses the mean of the rests before and after it (a bias that wanders between rests)."""
     fit_bias: bool = False
     """Also refine the bias in the optimisation (the paper keeps Eq. (2.15)'s mean)."""
     max_nfev: int = 200
     """Cost evaluations the optimiser may spend."""
+    scale_search: bool = True
+    """Start from the best ``s I`` on a grid around the turn angles implied by gravity (the
+    paper's ``theta_0 = I`` only works for readings already near SI; raw counts need this)."""
 
 
 def rest_bias(bias: np.ndarray, bias_cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -48,6 +54,19 @@ def rest_bias(bias: np.ndarray, bias_cov: np.ndarray) -> tuple[np.ndarray, np.nd
     mean = w @ bias
     cov = np.einsum("n,nij->ij", w**2, bias_cov)
     return mean, cov
+
+
+def initial_scale(rate: np.ndarray, dt: np.ndarray, g0: np.ndarray, g1: np.ndarray,
+                  cost) -> tuple[float, np.ndarray]:
+    """Best ``s`` for ``M = s I`` and its grid: around the median ratio of the gravity angle
+    (a lower bound of each turn's angle) to the raw integrated angle, over the tilting turns."""
+    tilt = np.arccos(np.clip(np.sum(g0 * g1, axis=1), -1, 1))
+    raw = np.linalg.norm(np.einsum("mk,mki->mi", dt, rate), axis=1)
+    use = (tilt > np.radians(5.0)) & (raw > 0)
+    s0 = float(np.median(tilt[use] / raw[use])) if use.any() else 1.0
+    grid = s0 * np.geomspace(0.5, 4.0, 25)
+    costs = [float(np.sum(cost(s * np.eye(3).ravel()) ** 2)) for s in grid]
+    return float(grid[int(np.argmin(costs))]), grid
 
 
 def gravity_residuals(M: np.ndarray, b: np.ndarray, rate: np.ndarray, dt: np.ndarray,
@@ -86,11 +105,23 @@ class GyroIntegration:
         def unpack(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             return theta[:9].reshape(3, 3), (theta[9:] if params.fit_bias else b)
 
+        if params.bias == "adjacent_rests" and not params.fit_bias:
+            rb = np.asarray(observations.bias, float)
+            rate_c = rate - 0.5 * (rb[turns.before] + rb[turns.after])[:, None, :]
+        else:
+            rate_c = rate - b  # bias of Eq. (2.15) removed once when it is not refined
+
         def cost(theta: np.ndarray) -> np.ndarray:
             M, bias = unpack(theta)
-            return gravity_residuals(M, bias, rate, dt, g0, g1).ravel()  # Eq. (2.18)
+            if params.fit_bias:
+                return gravity_residuals(M, bias, rate, dt, g0, g1).ravel()  # Eq. (2.18)
+            return gravity_residuals(M, 0.0, rate_c, dt, g0, g1).ravel()
 
-        theta0 = np.concatenate([np.eye(3).ravel(), b if params.fit_bias else []])
+        scale = 1.0
+        if params.scale_search:
+            scale, _ = initial_scale(rate_c, dt, g0, g1, lambda th: cost(np.concatenate(
+                [th, b if params.fit_bias else []])))
+        theta0 = np.concatenate([scale * np.eye(3).ravel(), b if params.fit_bias else []])
         sol = least_squares(cost, theta0, method="lm" if 3 * m >= len(theta0) else "trf",
                             x_scale="jac", max_nfev=params.max_nfev)
         M, bias = unpack(sol.x)
@@ -120,6 +151,8 @@ class GyroIntegration:
             "cost_evaluations": int(sol.nfev),
             "converged": bool(sol.success),
             "fit_bias": params.fit_bias,
+            "bias_model": "fitted" if params.fit_bias else params.bias,
+            "initial_scale": scale,
         }
         return TriadFit(M, bias, cov12, details)
 

@@ -22,7 +22,7 @@ from scipy.optimize import minimize_scalar
 from ..components import Params
 from ..errors import SolverError
 from ..observations import GyroObservations, TriadFit
-from ._rotation import integrate_rotations, rotation_vectors, step_times
+from ._rotation import carry_gravity, integrate_rotations, rotation_vectors, step_times
 
 MIN_TURNS = 10  # 8 unknowns, one informative equation per turn
 
@@ -31,8 +31,8 @@ class GyroRodriguesParams(Params):
     """``exact_rotation``: integrate the rate as a rotation (True) or the paper's
     small-angle sum (False). ``min_tilt_deg``: turns that move gravity by less are
     uninformative (rotation about the vertical) and skipped. ``iterations``: fixed-point
-    passes of the exact mode. ``max_scale_turn_deg``: the scale (eq. 37 over all turns)
-    uses turns up to this angle (tan(chi/2) is ill-conditioned near 180 deg)."""
+    passes of the exact mode. ``max_scale_turn_deg``: in small-angle mode the scale (eq. 37
+    over all turns) uses turns up to this angle only (eq. 28 fails for large turns)."""
 
     exact_rotation: bool = True
     min_tilt_deg: float = 0.5
@@ -160,31 +160,35 @@ class GyroRodrigues:
         exact = params.exact_rotation
         sel = [obs.roll_turn] if obs.roll_turn is not None else list(use)
         phis = rotations_of([rates[j] for j in sel], M_hat, True)
-        if obs.roll_turn is None:
+        if obs.roll_turn is None and not exact:
             small = np.degrees(np.linalg.norm(phis, axis=1)) <= params.max_scale_turn_deg
             if small.sum() < 1:
                 raise SolverError(f"gyro: no turn below {params.max_scale_turn_deg} deg to fix the "
                                   "scale; give the roll turn (eq. 37) or record small turns")
             sel = [j for j, keep in zip(sel, small, strict=True) if keep]
+            phis = phis[small]
         chosen = [rates[j] for j in sel]
-        phis = rotations_of(chosen, M_hat, exact)
         if obs.roll_turn is not None:
             d_gamma = np.arccos(np.clip(g0[sel[0]] @ g1[sel[0]], -1, 1))
             return float(d_gamma / np.linalg.norm(phis[0])), 0.0  # Eq. (37)
         s, d = g0[sel] + g1[sel], g1[sel] - g0[sel]
         c = np.cross(0.5 * phis, s)
         beta0 = float(-np.sum(c * d) / np.sum(c * c))  # small-angle LS of eq. (38)
+        if not exact:
+            r = d + beta0 * c
+            return beta0, float(np.sum(r * r) / max(3 * len(sel) - 1, 1) / np.sum(c * c))
 
         def cost(beta: float) -> float:
-            # exact: re-integrate the scaled rates (a scale does not commute with coning)
-            ph = rotations_of(chosen, beta * M_hat, True) if exact else beta * phis
-            Y = np.array([gibbs_of(p, exact) for p in ph])
-            return float(np.sum(rodrigues_error(g0[sel], g1[sel], Y) ** 2))
+            # gravity before, carried by the scaled rates as a finite rotation, vs gravity after:
+            # Rodrigues' relation without tan(chi/2), so well-conditioned up to 180 deg and beyond
+            q = integrate_rotations([t for t, _ in chosen], [w @ (beta * M_hat).T for _, w in chosen])
+            return float(np.sum((carry_gravity(q, g0[sel]) - g1[sel]) ** 2))
 
-        if exact:
-            beta0 = float(minimize_scalar(cost, bracket=(0.99 * beta0, beta0), tol=1e-10).x)
-        s2 = cost(beta0) / max(3 * len(sel) - 1, 1)
-        return beta0, float(s2 / np.sum(c * c))
+        beta = float(minimize_scalar(cost, bracket=(0.98 * beta0, beta0), tol=1e-10).x)
+        h = 1e-5 * beta
+        curv = (cost(beta + h) - 2 * cost(beta) + cost(beta - h)) / h**2
+        s2 = cost(beta) / max(2 * len(sel) - 1, 1)  # a unit vector has 2 degrees of freedom
+        return beta, float(2 * s2 / curv) if curv > 0 else float("nan")
 
 
 COMPONENTS = [GyroRodrigues()]

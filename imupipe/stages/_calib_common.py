@@ -92,3 +92,8 @@ def rest_at_time(rests: Rests, t_s: float) -> int:
         return int(inside[0])
     mid = 0.5 * (rests.t_start_s + rests.t_end_s)
     return int(np.argmin(np.abs(mid - t_s)))
+
+
+def model_T(T: np.ndarray) -> np.ndarray:
+    """Temperatures for ``apply``/``predict``: unknown (NaN) is taken as 25 degC (no thermal term)."""
+    return np.where(np.isfinite(T), T, 25.0)

@@ -19,7 +19,7 @@ from pydantic import Field
 from ..components import BoundSolver, Params, Stage
 from ..models import triads_to_table
 from ..observations import EllipsoidObservations, Rests
-from ._calib_common import dT, noise_details, residual_table, rest_at_time, thermal_k
+from ._calib_common import dT, model_T, noise_details, residual_table, rest_at_time, thermal_k
 
 G_STANDARD = 9.80665
 
@@ -79,9 +79,9 @@ def calibrate_accel(inputs: Mapping[str, pa.Table], params: AccelParams, solver:
         "reference_rests": {"y_up": y_up, "x_up": x_up, "how": how},
         "noise": noise_details(rests, "accel"), "g_m_s2": params.g_m_s2,
     })
-    x = cal.apply(y_raw, rests.temperature)
+    x = cal.apply(y_raw, model_T(rests.temperature))
     nx = np.linalg.norm(x, axis=1)
-    predicted = cal.predict(x / nx[:, None] * params.g_m_s2, rests.temperature)
+    predicted = cal.predict(x / nx[:, None] * params.g_m_s2, model_T(rests.temperature))
     sigma = np.sqrt(np.diagonal(rests.cov_of_mean("accel"), axis1=1, axis2=2))
     before = np.linalg.norm(y_raw, axis=1) / params.g_m_s2 - 1
     after = nx / params.g_m_s2 - 1

@@ -22,6 +22,7 @@ from ..solvers._rotation import integrate_rotations
 from ._calib_common import (
     concat_residuals,
     dT,
+    model_T,
     need_triad,
     noise_details,
     residual_table,
@@ -44,7 +45,7 @@ class GyroParams(Params):
 def rest_gravity(inputs: Mapping[str, pa.Table], rests: Rests, stage: str) -> np.ndarray:
     """(n, 3) unit gravity per rest from the calibrated accelerometer."""
     acc = need_triad(inputs, "accel", "accel", stage)
-    g = acc.apply(rests.need("accel"), rests.temperature)
+    g = acc.apply(rests.need("accel"), model_T(rests.temperature))
     return g / np.linalg.norm(g, axis=1, keepdims=True)
 
 
@@ -80,7 +81,7 @@ def calibrate_gyro(inputs: Mapping[str, pa.Table], params: GyroParams, solver: B
     mid = 0.5 * (rests.t_start_s + rests.t_end_s)
     sigma = np.sqrt(np.diagonal(rests.cov_of_mean("gyro"), axis1=1, axis2=2))
     res_rest = residual_table("calibrate_gyro", "gyro", "rest", mid, rests.temperature, bias,
-                              cal.bias(rests.temperature), sigma)
+                              cal.bias(model_T(rests.temperature)), sigma)
     # per turn: gravity after vs gravity before carried through the calibrated rotation
     ws = [(w - 0.5 * (bias[b] + bias[a])) @ cal.M.T
           for w, b, a in zip(turns.gyro, turns.before, turns.after, strict=True)]

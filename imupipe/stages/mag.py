@@ -19,7 +19,7 @@ from ..components import BoundSolver, Params, Stage
 from ..models import triads_to_table
 from ..observations import EllipsoidObservations, Rests
 from ..solvers.mag_dip import circle_dip
-from ._calib_common import dT, need_triad, noise_details, residual_table, thermal_k
+from ._calib_common import dT, model_T, need_triad, noise_details, residual_table, thermal_k
 from .segment import xyz
 
 
@@ -43,7 +43,7 @@ def calibrate_mag(inputs: Mapping[str, pa.Table], params: MagParams, solver: Bou
     acc = need_triad(inputs, "accel", "accel", "calibrate_mag")
     k, sigma_k = thermal_k(inputs, "mag")
     y = y_raw - np.outer(dT(rests.temperature), k)
-    gravity = acc.apply(rests.need("accel"), rests.temperature)
+    gravity = acc.apply(rests.need("accel"), model_T(rests.temperature))
     gravity /= np.linalg.norm(gravity, axis=1, keepdims=True)
     magnitude = params.field_T if params.field_T is not None else 1.0
     dip = np.radians(params.dip_deg) if params.dip_deg is not None else None
@@ -70,9 +70,9 @@ def calibrate_mag(inputs: Mapping[str, pa.Table], params: MagParams, solver: Bou
         **dip_info, "noise": noise_details(rests, "mag"),
         "field_T": params.field_T, "normalised": params.field_T is None,
     })
-    x = cal.apply(y_raw, rests.temperature)
+    x = cal.apply(y_raw, model_T(rests.temperature))
     nx = np.linalg.norm(x, axis=1)
-    predicted = cal.predict(x / nx[:, None] * magnitude, rests.temperature)
+    predicted = cal.predict(x / nx[:, None] * magnitude, model_T(rests.temperature))
     sigma = np.sqrt(np.diagonal(rests.cov_of_mean("mag"), axis1=1, axis2=2))
     raw_norm = np.linalg.norm(y_raw, axis=1)
     before = raw_norm / (magnitude if params.field_T else np.mean(raw_norm)) - 1

@@ -23,7 +23,7 @@ from ..models import TriadCalibration
 from ..observations import Rests, Turns
 from ..solvers._rotation import integrate_rotations
 from ..solvers.gyro_rodrigues import angle_error, rodrigues_error
-from ._calib_common import need_triad
+from ._calib_common import model_T, need_triad
 
 
 class ValidateParams(Params):
@@ -40,7 +40,7 @@ def turn_errors(rests: Rests, turns: Turns, acc: TriadCalibration | None,
                 gyr: TriadCalibration | None) -> tuple[np.ndarray, ...]:
     """Per turn: Gibbs vectors Y (m, 3), |E| (m,), angle error (m,) rad, tilt (m,) rad."""
     a = rests.need("accel")
-    g = acc.apply(a, rests.temperature) if acc is not None else a
+    g = acc.apply(a, model_T(rests.temperature)) if acc is not None else a
     g = g / np.linalg.norm(g, axis=1, keepdims=True)
     M = gyr.M if gyr is not None else np.eye(3)
     bias = rests.need("gyro")

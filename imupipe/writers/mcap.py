@@ -159,6 +159,7 @@ def _imu_block(accel: pa.Table | None, gyro: pa.Table | None) -> tuple[np.ndarra
 def _split_ns(t: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
     """ROS ``builtin_interfaces/Time`` (sec int32, nanosec uint32) of stamps in ns."""
     sec, nanosec = np.divmod(t, 1_000_000_000)
-    if len(sec) and (sec.min() < -(2**31) or sec.max() >= 2**31):
-        raise ValueError(f"{where}: time stamps outside the int32 seconds of a ROS 2 stamp")
+    if len(sec) and (sec.min() < 0 or sec.max() >= 2**31):
+        raise ValueError(f"{where}: time stamps must lie in [0, 2**31) s for an MCAP log_time "
+                         "and a ROS 2 stamp; shift t_ns")
     return sec, nanosec

@@ -15,7 +15,7 @@ import pytest
 from imupipe.components import Effect
 from imupipe.errors import ConfigError
 from imupipe.sim.api import known_effects, recording_arrays, simulate_recording
-from imupipe.sim.environment import EARTH_RATE_RAD_S
+from imupipe.sim.environment import EARTH_RATE_RAD_S, Environment
 from imupipe.sim.sensor import ImuModel, ThermalModel
 
 IDEAL = ImuModel(thermal=ThermalModel(readout_quantum_C=0.0))
@@ -203,3 +203,33 @@ def test_switching_an_effect_on_leaves_other_random_numbers_alone():
     m = rest_mask(x0, truth)
     np.testing.assert_array_equal(x1["accel"][m], x0["accel"][m])
     np.testing.assert_array_equal(x1["gyro"], x0["gyro"])
+
+
+def test_two_instances_of_one_effect_on_two_triads():
+    amp = [0.01, 0.02, 0.03]
+    x0, _ = run("warmup", duration_s=60.0)
+    x1, truth = run("warmup", {"warmup_transient": {"amp": amp, "tau_s": 10.0, "sensor": "gyro"},
+                               "warmup_transient:accel": {"amp": amp, "tau_s": 10.0, "sensor": "accel"}},
+                    duration_s=60.0)
+    expected = np.outer(np.exp(-x0["t"] / 10.0), amp)
+    np.testing.assert_allclose(x1["gyro"] - x0["gyro"], expected, atol=1e-15)
+    np.testing.assert_allclose(x1["accel"] - x0["accel"], expected, atol=1e-14)
+    assert set(truth.effects) == {"warmup_transient", "warmup_transient:accel"}
+
+
+def test_regressors_reproduce_the_linear_terms():
+    effects = known_effects()
+    G = np.arange(9.0).reshape(3, 3) * 1e-4
+    r = np.array([0.02, -0.01, 0.03])
+    x0, _ = run("gimbal", n_rotations=3, grid_deg=90.0)
+    x1, _ = run("gimbal", {"gyro_g_sensitivity": {"G": G.tolist()}, "lever_arm": {"r_m": r.tolist()}},
+                n_rotations=3, grid_deg=90.0)
+    from imupipe.sim.protocols import build, protocol_params
+
+    traj = build("gimbal", protocol_params("gimbal", n_rotations=3, grid_deg=90.0), np.random.default_rng([0, 1])).trajectory
+    kin = traj.evaluate(x0["t"])
+    f_centre = kin.specific_force(Environment().g)
+    J = effects["gyro_g_sensitivity"].regressors({"f": f_centre})
+    np.testing.assert_allclose(x1["gyro"] - x0["gyro"], J @ G.ravel(), atol=1e-15)
+    J = effects["lever_arm"].regressors({"omega": kin.omega, "alpha": kin.alpha})
+    np.testing.assert_allclose(x1["accel"] - x0["accel"], J @ r, atol=1e-12)

@@ -48,9 +48,9 @@ def test_hot_restart_draws_a_new_turn_on_bias_and_cools_while_off():
     out, truth = simulate_arrays("cooldown_hot_restart", {}, 7, duration_s=600.0, off_s=300.0, restart_s=300.0)
     on = np.array(truth.data["turn_on_bias"]["gyro"])
     assert on.shape == (2, 3) and not np.allclose(on[0], on[1])
-    last_before, first_after = out.T_die[out.t < 600.0][-1], out.T_die[out.t >= 900.0][0]
-    # unpowered for 300 s, the rise above ambient decays by exp(-300/600)
-    np.testing.assert_allclose(first_after - 22.0, (last_before - 22.0) * np.exp(-0.5), rtol=1e-6)
+    first_after = out.T_die[out.t >= 900.0][0]
+    # heated for 600 s, then unpowered for 300 s: the rise above ambient decays by exp(-300/600)
+    np.testing.assert_allclose(first_after - 22.0, 20.0 * (1 - np.exp(-1.0)) * np.exp(-0.5), rtol=1e-6)
 
 
 def test_sphere_rig_turns_are_small_and_steered_path_covers_the_sphere():
@@ -89,3 +89,12 @@ def test_reference_positions_point_the_right_axis_up():
         expected = np.zeros(3)
         expected[axis] = -g if label.endswith("down") else g
         np.testing.assert_allclose(f, expected, atol=1e-9)
+
+
+def test_ambient_swing_is_filtered_by_the_thermal_time_constant():
+    imu = ImuModel(thermal=ThermalModel(self_heating_C=0.0, readout_quantum_C=0.0, tau_s=100.0))
+    out, _ = simulate_arrays("warmup", {}, 0, imu=imu, duration_s=3000.0, swing_C=2.0, swing_period_s=600.0)
+    late = out.t > 1500.0  # transients gone (15 tau)
+    amplitude = (out.T_die[late].max() - out.T_die[late].min()) / 2
+    w = 2 * np.pi / 600.0
+    np.testing.assert_allclose(amplitude, 2.0 / np.sqrt(1 + (w * 100.0) ** 2), rtol=1e-4)
