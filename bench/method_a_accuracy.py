@@ -28,7 +28,7 @@ from imupipe.solvers.thermal_kalman import ThermalKalman, ThermalKalmanParams
 from imupipe.stages import accel, gyro, mag, segment, thermal, validate
 
 
-def run(protocol: str, seed: int, exact: bool) -> dict:
+def run(protocol: str, seed: int, exact: bool, scale_deg: float = 10.0) -> dict:
     rec, truth = simulate_recording(protocol, None, seed)
     d = dict(rec.device("imu"))
     env = truth.data["environment"]
@@ -47,8 +47,8 @@ def run(protocol: str, seed: int, exact: bool) -> dict:
                         BoundSolver(MagDip(), MagDipParams()))
     gy = gyro.STAGE.func({"rests": seg["rests"], "turns": seg["turns"], "gyro": d["gyro"],
                           "accel": ac["calibration"], "thermal": th["calibration"]},
-                         gyro.GyroParams(), BoundSolver(GyroRodrigues(),
-                                                        GyroRodriguesParams(exact_rotation=exact)))
+                         gyro.GyroParams(), BoundSolver(GyroRodrigues(), GyroRodriguesParams(
+                             exact_rotation=exact, max_scale_turn_deg=60.0 if exact else scale_deg)))
     va = validate.STAGE.func({"rests": seg["rests"], "turns": seg["turns"], "gyro": d["gyro"],
                               "accel": ac["calibration"], "gyro_cal": gy["calibration"]},
                              validate.ValidateParams(), None)
@@ -76,8 +76,10 @@ def main() -> None:
     ap.add_argument("--protocol", default="sphere_rig")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--small-angle", action="store_true", help="the paper's eq. (29) instead of exact")
+    ap.add_argument("--scale-turn-deg", type=float, default=10.0,
+                    help="small-angle mode: largest turn used for the scale (as sphere-rig.toml)")
     a = ap.parse_args()
-    r = run(a.protocol, a.seed, not a.small_angle)
+    r = run(a.protocol, a.seed, not a.small_angle, a.scale_turn_deg)
     truth, cal, g = r["truth"].calibration, r["cal"], r["env"]["g_m_s2"]
     Ea, Eg, Em = (cal[s].M @ truth[s].S - np.eye(3) for s in ("accel", "gyro", "mag"))
     sa, na, ra = split(Ea)

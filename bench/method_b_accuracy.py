@@ -5,7 +5,9 @@
 Part 1 (table): gimbal (method B's protocol) and sphere-rig (method A's) sessions
 from ``imupipe.sim`` with the default consumer-MEMS model (quantisation on),
 temperature coefficients set to zero (thermal calibration is a separate stage),
-no omitted-physics effects. The stillness segmentation finds the rests and
+no omitted-physics effects; ``gimbal+thermal`` keeps the model's bias temperature
+coefficients and its 20 degC self-heating (method B has no thermal model; the
+refinement fits k when the rests span 2 degC). The stillness segmentation finds the rests and
 turns; each method's solvers run on them; the refinement starts from each.
 Errors, RMS over seeds, gauge-free:
 
@@ -44,6 +46,7 @@ from imupipe.solvers.joint_ml import (
     JointMLParams,
     JointObservations,
     JointProblem,
+    fits_temperature,
     lower_gauge,
 )
 from imupipe.stages.segment import SegmentParams, segment
@@ -52,21 +55,25 @@ MG = 9.80665e-3
 TARGETS = {"accel_bias_mg": 0.2, "accel_shape_ppm": 200.0, "gyro_shape_ppm": 300.0, "gyro_align_deg": 0.02}
 
 
-def imu_model(seed: int, white_only: bool):
-    """Default consumer MEMS drawn from ``seed``, k = 0; ``white_only`` also drops quantisation."""
+def imu_model(seed: int, white_only: bool, thermal: bool = False):
+    """Default consumer MEMS drawn from ``seed``; k = 0 unless ``thermal``; ``white_only`` also
+    drops quantisation."""
     imu = default_imu(np.random.default_rng([seed, 2]))
     upd = {}
     for s in ("accel", "gyro", "mag"):
-        t = imu.triad(s).model_copy(update={"k": [0.0, 0.0, 0.0], "turn_on_sd": 0.0,
+        t = imu.triad(s).model_copy(update={"turn_on_sd": 0.0, **({} if thermal else {"k": [0.0] * 3}),
                                             **({"quantum": 0.0} if white_only else {})})
         upd[s] = t
     return imu.model_copy(update=upd)
 
 
 def session(protocol: str, seed: int, white_only: bool = False):
-    rec, truth = simulate_recording(protocol, {}, seed, imu=imu_model(seed, white_only))
+    """``protocol`` may end in ``+thermal``: the sensor's bias temperature coefficients stay on."""
+    protocol, _, extra = protocol.partition("+")
+    rec, truth = simulate_recording(protocol, {}, seed, imu=imu_model(seed, white_only, extra == "thermal"))
     dev = rec.device("imu")
-    seg = segment({"accel": dev["accel"], "gyro": dev["gyro"]}, SegmentParams(), None)
+    streams = ("accel", "gyro", "temperature")
+    seg = segment({s: dev[s] for s in streams if s in dev}, SegmentParams(), None)
     rests = Rests.from_table(seg["rests"])
     turns = Turns.from_tables(seg["turns"], dev["gyro"], rests.t0_ns)
     g = truth.data["environment"]["g_m_s2"]
@@ -108,6 +115,7 @@ def refine(rests: Rests, turns: Turns, g: float, start):
 
 
 def metrics(Ma, ba, Mg, bg, truth) -> dict[str, float]:
+    """Gauge-free errors (see the module docstring); ``b`` at 25 degC."""
     Qa, Ha = polar(Ma @ truth["accel"].S)
     Qg, Hg = polar(Mg @ truth["gyro"].S)
     c = np.clip((np.trace(Qg @ Qa.T) - 1) / 2, -1, 1)
@@ -118,16 +126,19 @@ def metrics(Ma, ba, Mg, bg, truth) -> dict[str, float]:
 
 
 def truth_problem(rests: Rests, turns: Turns, g: float, truth) -> JointProblem:
-    """The joint likelihood at the truth, in the lower-triangular gauge."""
+    """The joint likelihood at the truth, in the lower-triangular gauge, with the parameters
+    the estimator fits (k when the rests span 2 degC, as ``joint_ml``'s ``auto``)."""
     L, Q = lower_gauge(truth["accel"].S)
-    return JointProblem(rests, turns, g, L, truth["accel"].b0, Q @ truth["gyro"].M, truth["gyro"].b0)
+    fit_k = fits_temperature(rests, "auto")
+    return JointProblem(rests, turns, g, L, truth["accel"].b0, Q @ truth["gyro"].M, truth["gyro"].b0,
+                        truth["accel"].k, truth["gyro"].k, fit_k=fit_k)
 
 
 def bound_metrics(prob: JointProblem, truth, rng, n_draw: int = 300) -> dict[str, list[float]]:
     """Metrics of draws from N(truth, CRB): what an efficient estimator would show."""
-    cov = prob.covariance(prob.x0)
+    cov = prob.covariance(prob.x0)[:24, :24]
     x0 = prob.x0
-    S_a, b_a, M_g, b_g, _ = prob.unpack(x0)
+    S_a, b_a, M_g, b_g, *_ = prob.unpack(x0)
     M_a = np.linalg.inv(S_a)
     t = np.concatenate([M_a.ravel(), b_a, M_g.ravel(), b_g])
     w, V = np.linalg.eigh(cov)
@@ -183,7 +194,7 @@ def monte_carlo(n: int) -> None:
                             truth["gyro"].b0])
         errs.append(np.concatenate([a.M.ravel(), a.b0, gy.M.ravel(), gy.b0]) - t)
         prob = truth_problem(rests, turns, g, truth)
-        crb.append(np.diag(prob.covariance(prob.x0)))
+        crb.append(np.diag(prob.covariance(prob.x0))[:24])
     bound = np.sqrt(np.mean(crb, axis=0))
     rms = np.sqrt(np.mean(np.square(errs), axis=0))
     free = bound > 1e-12
@@ -204,7 +215,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=6)
     ap.add_argument("--mc", type=int, default=24)
-    ap.add_argument("--protocols", nargs="+", default=["gimbal", "sphere_rig"])
+    ap.add_argument("--protocols", nargs="+", default=["gimbal", "sphere_rig", "gimbal+thermal"])
     args = ap.parse_args()
     if args.seeds:
         table(args.protocols, args.seeds)

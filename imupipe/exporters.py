@@ -28,16 +28,22 @@ class CalibrationJson:
     name = "calibration_json"
     filename = "calibration.json"
 
-    def export(self, results: Mapping[str, pa.Table], context: Mapping[str, Any], out_dir: Path) -> list[Path]:
+    def export(
+        self, results: Mapping[str, pa.Table], context: Mapping[str, Any], out_dir: Path
+    ) -> list[Path]:
         if not results:
-            raise SolverError(f"{context.get('session', '?')}: no calibration table to export "
-                              "(every calibrate stage was skipped); check the session's streams")
+            raise SolverError(
+                f"{context.get('session', '?')}: no calibration table to export "
+                "(every calibrate stage was skipped); check the session's streams"
+            )
         meta = {k: context[k] for k in CONTEXT_KEYS if k in context}
         if context.get("skipped"):
             meta["skipped_stages"] = dict(context["skipped"])
         calibration = Calibration.from_tables(*results.values(), meta=meta)
         if not calibration.triads:
-            raise SolverError(f"{context.get('session', '?')}: the calibration tables hold no triad")
+            raise SolverError(
+                f"{context.get('session', '?')}: the calibration tables hold no triad"
+            )
         path = Path(out_dir) / self.filename
         write_text(path, calibration.to_json())
         return [path]

@@ -218,8 +218,8 @@ class EllipsoidObservations:
     Reference positions (accelerometer, eqs. 17-19): ``y_up`` / ``x_up`` rest
     indices where instrument Y / X points up, or None.
     Magnetometer (eqs. 21-25): ``gravity`` (n, 3) corrected unit specific force
-    in the instrument frame for the same rests, ``dip_rad`` the dip angle or
-    None, ``circles`` lists of rest indices each tracing a turntable circle.
+    in the instrument frame for the same rests, ``dip_rad`` the dip angle
+    (positive down) or None to estimate it.
     """
 
     sensor: str
@@ -231,7 +231,6 @@ class EllipsoidObservations:
     x_up: int | None = None
     gravity: np.ndarray | None = None
     dip_rad: float | None = None
-    circles: tuple[np.ndarray, ...] = ()
 
 
 # The brief's names for the accel and mag inputs: both are ellipsoid observations.
@@ -296,3 +295,23 @@ def check_shape(name: str, value: np.ndarray, shape: tuple[int, ...]) -> np.ndar
     if value.ndim != len(shape) or any(s not in (-1, v) for s, v in zip(shape, value.shape, strict=True)):
         raise SchemaError(f"{name} has shape {value.shape}, expected {shape}")
     return value
+
+
+def forward_jacobian(cal: Any, x: np.ndarray, T: np.ndarray | float | None = None) -> np.ndarray:
+    """(n, 3, 15) Jacobian of ``cal.predict(x, T)`` (the raw reading) with respect to the
+    parameters ``(vec M row-major (9), b0 (3), k (3))`` of a ``models.TriadCalibration``.
+
+    ``y = S x + b0 + k (T - T_ref)`` with ``S = M^-1``, so ``dy/dM_ij = -S[:, i] (S x)_j``.
+    ``x`` (n, 3) true inputs in the instrument frame; ``T`` (n,) degC or None (no thermal term).
+    """
+    x = np.atleast_2d(np.asarray(x, dtype=float))
+    S = np.linalg.inv(cal.M)
+    Sx = x @ S.T
+    n = len(x)
+    J = np.zeros((n, 3, 15))
+    J[:, :, :9] = -np.einsum("ai,nj->naij", S, Sx).reshape(n, 3, 9)
+    J[:, :, 9:12] = np.eye(3)
+    if T is not None:
+        dT = np.broadcast_to(np.asarray(T, dtype=float) - cal.T_ref_C, (n,))
+        J[:, :, 12:15] = dT[:, None, None] * np.eye(3)
+    return J

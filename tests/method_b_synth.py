@@ -44,12 +44,22 @@ def make_session(seed: int, n_rests: int = 60, rate_hz: float = 100.0, rest_s: f
                  turn_s: float = 2.0, sigma_accel: float = 0.02, sigma_gyro: float = 0.003,
                  speed_dps: float = 90.0, S_accel: np.ndarray = S_ACCEL,
                  b_accel: np.ndarray = B_ACCEL, S_gyro: np.ndarray = S_GYRO,
-                 b_gyro: np.ndarray = B_GYRO) -> Session:
+                 b_gyro: np.ndarray = B_GYRO, k_accel: np.ndarray | None = None,
+                 k_gyro: np.ndarray | None = None) -> Session:
     """Rests at random attitudes joined by turns of varying axis (gimbal-like).
 
     ``sigma_*``: white noise of one sample (m/s^2, rad/s). Body rate during a
-    turn: ``sin^2`` envelope times ``w0 + w1 sin(2 pi t / turn_s)``.
+    turn: ``sin^2`` envelope times ``w0 + w1 sin(2 pi t / turn_s)``. With
+    ``k_*`` (per degC) the die warms from 22 degC by 20 degC (tau 600 s) and the
+    biases follow ``k (T - 25)``; rests then carry temperatures.
     """
+    warm = k_accel is not None or k_gyro is not None
+    k_accel = np.zeros(3) if k_accel is None else k_accel
+    k_gyro = np.zeros(3) if k_gyro is None else k_gyro
+
+    def temp(t: np.ndarray) -> np.ndarray:
+        return 22.0 + 20.0 * (1 - np.exp(-np.asarray(t) / 600.0))
+
     rng = np.random.default_rng(seed)
     dt = 1.0 / rate_hz
     n_rest = round(rest_s * rate_hz)
@@ -81,20 +91,24 @@ def make_session(seed: int, n_rests: int = 60, rate_hz: float = 100.0, rest_s: f
         q = quat_exp(body_rate(fine) * (dt / sub))[None]
         C = C @ quat_to_matrix(compose(q))[0]
         raw = body_rate(tj) @ S_gyro.T + b_gyro + rng.normal(size=(k, 3)) * sigma_gyro
+        raw += np.outer(temp(t + tj) - 25.0, k_gyro)
         turn_t.append(t + tj)
         turn_w.append(raw)
         t += (k + 1) * dt
     up = np.array(up)
     n = len(up)
     counts = np.full(n, n_rest)
+    T = temp(0.5 * (np.array(t_s) + np.array(t_e)))
     acc_mean = (G * up) @ S_accel.T + b_accel + rng.normal(size=(n, 3)) * sigma_accel / np.sqrt(n_rest)
     gyr_mean = b_gyro + rng.normal(size=(n, 3)) * sigma_gyro / np.sqrt(n_rest)
+    acc_mean += np.outer(T - 25.0, k_accel)
+    gyr_mean += np.outer(T - 25.0, k_gyro)
     rests = Rests(
         np.array(t_s), np.array(t_e), counts,
         {"accel": acc_mean, "gyro": gyr_mean},
         {"accel": np.tile(np.eye(3) * sigma_accel**2, (n, 1, 1)),
          "gyro": np.tile(np.eye(3) * sigma_gyro**2, (n, 1, 1))},
-        np.full(n, np.nan), {"accel": counts, "gyro": counts},
+        T if warm else np.full(n, np.nan), {"accel": counts, "gyro": counts},
     )
     turns = Turns(np.arange(n - 1), np.arange(1, n), tuple(turn_t), tuple(turn_w))
     return Session(rests, turns, S_accel, b_accel, S_gyro, b_gyro, sigma_accel, sigma_gyro, up)
@@ -103,11 +117,11 @@ def make_session(seed: int, n_rests: int = 60, rate_hz: float = 100.0, rest_s: f
 
 def session_tables(s: Session) -> dict:
     """``rests`` and ``turns`` tables and a ``gyro`` table holding the turns' samples."""
+    from dataclasses import replace
+
     import pyarrow as pa
 
     from imupipe import schemas
-
-    from dataclasses import replace
 
     t0_ns = 1_000_000_000
     rests = replace(s.rests, t0_ns=t0_ns).to_table()

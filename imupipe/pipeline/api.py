@@ -17,12 +17,13 @@ import glob
 import hashlib
 import logging
 import traceback
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from .. import __version__
-from ..errors import ImupipeError
+from ..errors import ImupipeError, MissingExtraError
 from ..plugins import Registry, make_registry
 from ..progress import progress
 from .cache import Cache, read_manifest
@@ -40,7 +41,7 @@ CALIBRATION = "calibration.json"
 
 @dataclass(frozen=True)
 class RegistrySpec:
-    """How a worker process makes its registry: plugin modules by import name, entry points or not."""
+    """How a worker process makes its registry: plugin modules by import name; entry points?"""
 
     plugins: tuple[str, ...] = ()
     entry_points: bool = True
@@ -48,8 +49,9 @@ class RegistrySpec:
     def make(self) -> Registry:
         import importlib
 
-        return make_registry([importlib.import_module(m) for m in self.plugins],
-                             entry_points_too=self.entry_points)
+        return make_registry(
+            [importlib.import_module(m) for m in self.plugins], entry_points_too=self.entry_points
+        )
 
 
 DEFAULT_SPEC = RegistrySpec()  # what ``imupipe batch`` workers load: every installed plugin
@@ -81,6 +83,7 @@ class JobResult:
 
 def session_ids(sessions: Sequence[Path]) -> list[str]:
     """A folder name per session: the stem (a manifest's folder name), unique within the list."""
+
     def stem(p: Path) -> str:
         return p.parent.resolve().name if p.name.lower() == "session.toml" else p.stem
 
@@ -93,8 +96,9 @@ def session_ids(sessions: Sequence[Path]) -> list[str]:
     return out
 
 
-def process_session(session: Path, session_id: str, pipeline: Pipeline, registry: Registry,
-                    out: Path, on_stage=None) -> Path | None:
+def process_session(
+    session: Path, session_id: str, pipeline: Pipeline, registry: Registry, out: Path, on_stage=None
+) -> Path | None:
     """Run ``pipeline`` on one session and export; return the calibration.json written (if any).
 
     On failure nothing is left claiming success: the session's calibration.json is removed.
@@ -102,8 +106,9 @@ def process_session(session: Path, session_id: str, pipeline: Pipeline, registry
     run_dir = Path(out) / session_id
     calibration = run_dir / CALIBRATION
     try:
-        run = run_session(session, pipeline, registry, Cache(Path(out) / CACHE_DIR),
-                          run_dir / MANIFEST, on_stage)
+        run = run_session(
+            session, pipeline, registry, Cache(Path(out) / CACHE_DIR), run_dir / MANIFEST, on_stage
+        )
         return _export(run, registry, run_dir)
     except BaseException:
         calibration.unlink(missing_ok=True)
@@ -112,8 +117,12 @@ def process_session(session: Path, session_id: str, pipeline: Pipeline, registry
 
 def _export(run: SessionRun, registry: Registry, run_dir: Path) -> Path | None:
     pipeline = run.pipeline
-    context = {"session": str(run.session), "pipeline": pipeline.name, "imupipe_version": __version__,
-               "skipped": run.skipped}
+    context = {
+        "session": str(run.session),
+        "pipeline": pipeline.name,
+        "imupipe_version": __version__,
+        "skipped": run.skipped,
+    }
     written = None
     if pipeline.export_calibration:
         tables = {str(r): t for r in pipeline.export_calibration if (t := run.table(r)) is not None}
@@ -122,7 +131,10 @@ def _export(run: SessionRun, registry: Registry, run_dir: Path) -> Path | None:
     if pipeline.export_reports:
         if "report" in registry.names("exporters"):
             tables = {str(r): t for r in pipeline.export_reports if (t := run.table(r)) is not None}
-            registry.get("exporters", "report").export(tables, context, run_dir)
+            try:
+                registry.get("exporters", "report").export(tables, context, run_dir)
+            except MissingExtraError as exc:  # the calibration stands; say how to get reports
+                warnings.warn(f"{run.session}: no report written: {exc}", stacklevel=2)
         else:
             log.info("no 'report' exporter is registered; skipping the reports of %s", run.session)
     return written
@@ -131,8 +143,14 @@ def _export(run: SessionRun, registry: Registry, run_dir: Path) -> Path | None:
 # --------------------------------------------------------------------------- run
 
 
-def run_sessions(sessions: list[Path], pipeline: Path | None = None, out: Path = Path("imupipe-out"),
-                 quiet: bool = False, *, registry: Registry | None = None) -> list[Path]:
+def run_sessions(
+    sessions: list[Path],
+    pipeline: Path | None = None,
+    out: Path = Path("imupipe-out"),
+    quiet: bool = False,
+    *,
+    registry: Registry | None = None,
+) -> list[Path]:
     """``imupipe run``: every session in turn; a failing session does not stop the others.
 
     Returns the calibration files written; raises the first session's error
@@ -140,7 +158,8 @@ def run_sessions(sessions: list[Path], pipeline: Path | None = None, out: Path =
     """
     registry = registry or make_registry()
     spec = load_pipeline(pipeline, registry)  # bad config: fail before reading any data
-    sessions = [Path(s) for s in sessions]
+    # the same file named twice is one session
+    sessions = list({Path(s).resolve(): Path(s) for s in sessions}.values())
     written, failures = [], []
     with progress(quiet) as p:
         all_task = p.add_task("sessions", total=len(sessions))
@@ -148,8 +167,14 @@ def run_sessions(sessions: list[Path], pipeline: Path | None = None, out: Path =
         for session, sid in zip(sessions, session_ids(sessions), strict=True):
             p.update(stage_task, completed=0, description=f"{sid}")
             try:
-                path = process_session(session, sid, spec, registry, Path(out),
-                                       on_stage=lambda *_: p.advance(stage_task))
+                path = process_session(
+                    session,
+                    sid,
+                    spec,
+                    registry,
+                    Path(out),
+                    on_stage=lambda *_: p.advance(stage_task),
+                )
             except ImupipeError as exc:
                 failures.append(exc)
                 if len(sessions) > 1:
@@ -186,29 +211,35 @@ def run_job(job: Job) -> JobResult:
 def expand_inputs(inputs: Sequence[str], registry: Registry, out: Path | None = None) -> list[Path]:
     """Session files from directories and globs.
 
-    A directory contributes every file a registered reader claims by suffix,
-    recursively, except that a folder holding a ``session.toml`` is one session
-    (its data files are not sessions of their own). ``out`` is never searched.
+    A directory contributes, recursively, every file that a registered reader
+    with its suffix claims (``sniff``), except that a folder holding a
+    ``session.toml`` is that one session (its data files are not sessions of
+    their own). A file with a reader's suffix that no reader claims is skipped
+    with a warning. Hidden folders and ``out`` are never searched. A file named
+    explicitly (or matched by a glob) is taken as it is.
     """
-    suffixes = {s.lower() for n in registry.names("readers")
-                for s in getattr(registry.get("readers", n), "suffixes", ())}
+    readers = [registry.get("readers", n) for n in registry.names("readers")]
     skip = Path(out).resolve() if out is not None else None
     found: list[Path] = []
     for item in inputs:
-        matches = [Path(m) for m in sorted(glob.glob(item, recursive=True))] or \
-            ([Path(item)] if Path(item).exists() else [])
+        matches = [Path(m) for m in sorted(glob.glob(item, recursive=True))] or (
+            [Path(item)] if Path(item).exists() else []
+        )
         if not matches:
             raise ImupipeError(f"{item}: no such file, directory or matching glob")
         for m in matches:
-            found += _walk(m, suffixes, skip) if m.is_dir() else [m]
+            found += _walk(m, readers, skip) if m.is_dir() else [m]
     unique = list(dict.fromkeys(p.resolve() for p in found))
     if not unique:
-        raise ImupipeError(f"{', '.join(inputs)}: no session files found (suffixes read: "
-                           f"{', '.join(sorted(suffixes)) or 'none'})")
+        suffixes = sorted({s for r in readers for s in getattr(r, "suffixes", ())})
+        raise ImupipeError(
+            f"{', '.join(inputs)}: no session files found (suffixes read: "
+            f"{', '.join(suffixes) or 'none'})"
+        )
     return unique
 
 
-def _walk(folder: Path, suffixes: set[str], skip: Path | None) -> list[Path]:
+def _walk(folder: Path, readers: list, skip: Path | None) -> list[Path]:
     if skip is not None and folder.resolve() == skip:
         return []
     manifest = folder / "session.toml"
@@ -219,15 +250,32 @@ def _walk(folder: Path, suffixes: set[str], skip: Path | None) -> list[Path]:
         if p.name.startswith("."):
             continue
         if p.is_dir():
-            out += _walk(p, suffixes, skip)
-        elif p.suffix.lower() in suffixes:
+            out += _walk(p, readers, skip)
+            continue
+        candidates = [r for r in readers if p.suffix.lower() in getattr(r, "suffixes", ())]
+        if not candidates:
+            continue
+        with open(p, "rb") as f:
+            head = f.read(64)
+        if any(r.sniff(p, head) for r in candidates):
             out.append(p)
+        else:
+            log.warning(
+                "%s: skipped: no reader accepts it (%s)", p, ", ".join(r.name for r in candidates)
+            )
     return out
 
 
-def batch(inputs: list[str], pipeline: Path | None = None, out: Path = Path("imupipe-out"),
-          executor: str = "local", jobs: int | None = None, quiet: bool = False, *,
-          plugins: RegistrySpec | None = None) -> list[JobResult]:
+def batch(
+    inputs: list[str],
+    pipeline: Path | None = None,
+    out: Path = Path("imupipe-out"),
+    executor: str = "local",
+    jobs: int | None = None,
+    quiet: bool = False,
+    *,
+    plugins: RegistrySpec | None = None,
+) -> list[JobResult]:
     """``imupipe batch``: each session an independent job; returns the failures.
 
     Prints a summary table (session, status, output or reason).
@@ -237,8 +285,10 @@ def batch(inputs: list[str], pipeline: Path | None = None, out: Path = Path("imu
     pipeline_obj = load_pipeline(pipeline, registry)  # bad config: fail before any job starts
     runner = registry.get("executors", executor)
     sessions = expand_inputs(inputs, registry, out)
-    jobs_list = [Job(str(s), sid, str(pipeline_obj.path.resolve()), str(Path(out).resolve()), spec)
-                 for s, sid in zip(sessions, session_ids(sessions), strict=True)]
+    jobs_list = [
+        Job(str(s), sid, str(pipeline_obj.path.resolve()), str(Path(out).resolve()), spec)
+        for s, sid in zip(sessions, session_ids(sessions), strict=True)
+    ]
     with progress(quiet) as p:
         task = p.add_task(f"sessions ({executor})", total=len(jobs_list))
         kwargs = {"on_result": lambda *_: p.advance(task)} if _takes_on_result(runner) else {}
@@ -258,7 +308,9 @@ def _takes_on_result(executor) -> bool:
 
 def summary(results: Sequence[JobResult]) -> str:
     """A plain table: session, status, output or reason."""
-    rows = [("session", "status", "output / reason")] + [(r.session, r.status, r.detail) for r in results]
+    rows = [("session", "status", "output / reason")] + [
+        (r.session, r.status, r.detail) for r in results
+    ]
     w0, w1 = (max(len(r[i]) for r in rows) for i in (0, 1))
     failed = sum(r.status != "ok" for r in results)
     lines = [f"{a:<{w0}}  {b:<{w1}}  {c}" for a, b, c in rows]
@@ -269,8 +321,13 @@ def summary(results: Sequence[JobResult]) -> str:
 # --------------------------------------------------------------------------- status
 
 
-def status(sessions: list[Path], pipeline: Path | None = None, out: Path = Path("imupipe-out"), *,
-           registry: Registry | None = None) -> str:
+def status(
+    sessions: list[Path],
+    pipeline: Path | None = None,
+    out: Path = Path("imupipe-out"),
+    *,
+    registry: Registry | None = None,
+) -> str:
     """``imupipe status``: per session, which stages are stale and why; nothing runs.
 
     With no sessions, those recorded in ``out`` (their run manifests).
@@ -298,4 +355,16 @@ def status(sessions: list[Path], pipeline: Path | None = None, out: Path = Path(
     return "\n".join(blocks)
 
 
-__all__ = ["Job", "JobResult", "RegistrySpec", "batch", "expand_inputs", "process_session", "run_job", "run_sessions", "session_ids", "status", "summary"]
+__all__ = [
+    "Job",
+    "JobResult",
+    "RegistrySpec",
+    "batch",
+    "expand_inputs",
+    "process_session",
+    "run_job",
+    "run_sessions",
+    "session_ids",
+    "status",
+    "summary",
+]

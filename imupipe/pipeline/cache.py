@@ -25,6 +25,7 @@ from typing import Any
 import pyarrow as pa
 
 from .. import __version__
+from ..errors import ImupipeError
 from ..io import file_digest, read_arrow, table_digest, write_arrow, write_text
 from .dag import Node
 
@@ -78,8 +79,10 @@ def _strings(obj: Any):
 def session_digest(path: Path) -> str:
     """Digest of a session's bytes (all its files, see ``session_files``)."""
     path = Path(path)
-    parts = [[str(f.relative_to(path.parent)) if f != path else "", file_digest(f)]
-             for f in session_files(path)]
+    parts = [
+        [str(f.relative_to(path.parent)) if f != path else "", file_digest(f)]
+        for f in session_files(path)
+    ]
     return sha256(canonical(sorted(parts)))
 
 
@@ -120,11 +123,19 @@ def key_parts(node: Node, inputs: dict[str, str]) -> KeyParts:
     if node.solver is not None:
         params.pop("solver_params", None)  # keyed by the validated solver params below
         s = node.solver.solver
-        solver = {"name": s.name, "version": str(s.version),
-                  "params": node.solver.params.model_dump(mode="json")}
+        solver = {
+            "name": s.name,
+            "version": str(s.version),
+            "params": node.solver.params.model_dump(mode="json"),
+        }
     # normalise through JSON so tuples/lists and the manifest's copy compare equal
-    return KeyParts(node.stage.name, str(node.stage.version), json.loads(canonical(params)),
-                    solver, dict(sorted(inputs.items())))
+    return KeyParts(
+        node.stage.name,
+        str(node.stage.version),
+        json.loads(canonical(params)),
+        solver,
+        dict(sorted(inputs.items())),
+    )
 
 
 # --------------------------------------------------------------------------- the cache
@@ -152,23 +163,40 @@ class Cache:
 
     def load(self, key: str, port: str) -> pa.Table:
         """An output as the stage returned it (provenance stripped)."""
-        table = read_arrow(self._dir(key) / f"{port}.arrow")
+        path = self._dir(key) / f"{port}.arrow"
+        try:
+            table = read_arrow(path)
+        except (pa.ArrowInvalid, OSError) as exc:
+            raise ImupipeError(
+                f"{path}: cached output is unreadable ({exc}); delete {self._dir(key)} and rerun"
+            ) from None
         meta = {k: v for k, v in (table.schema.metadata or {}).items() if k != PROVENANCE_KEY}
         return table.replace_schema_metadata(meta or None)
 
-    def store(self, parts: KeyParts, outputs: dict[str, pa.Table], stage_key: str) -> dict[str, str]:
+    def store(
+        self, parts: KeyParts, outputs: dict[str, pa.Table], stage_key: str
+    ) -> dict[str, str]:
         """Write the outputs of one stage run; return port -> output digest."""
         key = parts.key
         digests = {port: table_digest(table) for port, table in outputs.items()}
         for port, table in outputs.items():
-            provenance = {"stage": stage_key, "uses": parts.stage, "version": parts.version,
-                          "key": key, "port": port, "inputs": parts.inputs,
-                          "digest": digests[port], "imupipe_version": __version__}
+            provenance = {
+                "stage": stage_key,
+                "uses": parts.stage,
+                "version": parts.version,
+                "key": key,
+                "port": port,
+                "inputs": parts.inputs,
+                "digest": digests[port],
+                "imupipe_version": __version__,
+            }
             meta = dict(table.schema.metadata or {})
             meta[PROVENANCE_KEY] = canonical(provenance).encode()
             write_arrow(self._dir(key) / f"{port}.arrow", table.replace_schema_metadata(meta))
-        write_text(self._dir(key) / "outputs.json",
-                   json.dumps({"key": key, "parts": parts.to_dict(), "outputs": digests}, indent=1))
+        write_text(
+            self._dir(key) / "outputs.json",
+            json.dumps({"key": key, "parts": parts.to_dict(), "outputs": digests}, indent=1),
+        )
         return digests
 
 

@@ -64,7 +64,9 @@ def resolve_path(path: Path | str | None) -> Path:
     if path is None:
         default = default_pipeline_path()
         if not default.is_file():
-            raise ConfigError(f"{default}: the default pipeline is missing; give one with --pipeline FILE")
+            raise ConfigError(
+                f"{default}: the default pipeline is missing; give one with --pipeline FILE"
+            )
         return default
     path = Path(path)
     if not path.is_file():
@@ -92,39 +94,61 @@ def load_pipeline(path: Path | str | None, registry: Registry) -> dag.Pipeline:
     for key, section in spec.stages.items():
         where = f"stages.{key}"
         if not _KEY.match(key) or key == dag.SESSION:
-            raise ConfigError(f"{path}: {where}: {key!r} cannot name a stage; use letters, digits, _ "
-                              f"or - (and not {dag.SESSION!r})")
+            raise ConfigError(
+                f"{path}: {where}: {key!r} cannot name a stage; use letters, digits, _ "
+                f"or - (and not {dag.SESSION!r})"
+            )
         stage = _lookup(registry, "stages", section.uses, path, f"{where}.uses")
         params = _validate(stage.params, section.params, path, (*where.split("."), "params"))
         solver = _bind_solver(registry, stage, params, path, where) if stage.solver_kind else None
-        inputs = {port: dag.parse_ref(text, f"{path}: {where}.inputs.{port}")
-                  for port, text in section.inputs.items()}
+        inputs = {
+            port: dag.parse_ref(text, f"{path}: {where}.inputs.{port}")
+            for port, text in section.inputs.items()
+        }
         nodes.append(dag.Node(key, stage, params, solver, inputs))
         wiring[key] = f"{where}.inputs"
-    pipeline = dag.build(path, spec.name, nodes, wiring, description=spec.description,
-                         device=spec.input.device, reader=spec.input.reader, raw=raw)
-    calibration = dag.check_export(path, spec.export.calibration, pipeline.nodes,
-                                   "export.calibration", "calibration")
+    pipeline = dag.build(
+        path,
+        spec.name,
+        nodes,
+        wiring,
+        description=spec.description,
+        device=spec.input.device,
+        reader=spec.input.reader,
+        raw=raw,
+    )
+    calibration = dag.check_export(
+        path, spec.export.calibration, pipeline.nodes, "export.calibration", "calibration"
+    )
     reports = dag.check_export(path, spec.export.reports, pipeline.nodes, "export.reports", None)
-    return dag.Pipeline(**{**pipeline.__dict__, "export_calibration": calibration,
-                           "export_reports": reports})
+    return dag.Pipeline(
+        **{**pipeline.__dict__, "export_calibration": calibration, "export_reports": reports}
+    )
 
 
 def _bind_solver(registry: Registry, stage, params: Params, path: Path, where: str) -> BoundSolver:
     name = getattr(params, "solver", None)
     if not isinstance(name, str):
-        raise PluginError(f"stage {stage.name!r} has solver_kind {stage.solver_kind!r} but its params "
-                          "lack a `solver: str` field; fix the stage's Params model")
+        raise PluginError(
+            f"stage {stage.name!r} has solver_kind {stage.solver_kind!r} but its params "
+            "lack a `solver: str` field; fix the stage's Params model"
+        )
     solver = _lookup(registry, "solvers", name, path, f"{where}.params.solver")
     if solver.kind != stage.solver_kind:
-        same = [n for n in registry.names("solvers")
-                if registry.get("solvers", n).kind == stage.solver_kind]
-        raise ConfigError(f"{path}: {where}.params.solver: solver {name!r} is of kind {solver.kind!r}; "
-                          f"stage {stage.name!r} needs kind {stage.solver_kind!r}: "
-                          f"{', '.join(same) or 'none registered'}")
+        same = [
+            n
+            for n in registry.names("solvers")
+            if registry.get("solvers", n).kind == stage.solver_kind
+        ]
+        raise ConfigError(
+            f"{path}: {where}.params.solver: solver {name!r} is of kind {solver.kind!r}; "
+            f"stage {stage.name!r} needs kind {stage.solver_kind!r}: "
+            f"{', '.join(same) or 'none registered'}"
+        )
     raw = getattr(params, "solver_params", None) or {}
-    solver_params = _validate(solver.params, dict(raw), path,
-                              (*where.split("."), "params", "solver_params"))
+    solver_params = _validate(
+        solver.params, dict(raw), path, (*where.split("."), "params", "solver_params")
+    )
     return BoundSolver(solver, solver_params)
 
 

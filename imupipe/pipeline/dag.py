@@ -22,7 +22,7 @@ SESSION_STREAMS = ("accel", "gyro", "mag", "temperature")
 
 @dataclass(frozen=True)
 class Ref:
-    """A table a stage reads: ``source`` is a stage key or ``"session"``; ``port`` its output/stream."""
+    """A table a stage reads: ``source`` a stage key or ``"session"``; ``port`` an output/stream."""
 
     source: str
     port: str
@@ -73,12 +73,15 @@ def parse_ref(text: str, where: str) -> Ref:
     """``"rests.rests"`` -> Ref("rests", "rests"); errors name ``where`` (a key path)."""
     source, sep, port = text.partition(".")
     if not sep or not source or not port or "." in port:
-        raise ConfigError(f"{where}: {text!r} is not a reference; write 'session.<stream>' or '<stage>.<output>'")
+        raise ConfigError(
+            f"{where}: {text!r} is not a reference; write 'session.<stream>' or '<stage>.<output>'"
+        )
     return Ref(source, port)
 
 
-def build(path: Path, name: str, nodes: list[Node], wiring_paths: Mapping[str, str],
-          **fields) -> Pipeline:
+def build(
+    path: Path, name: str, nodes: list[Node], wiring_paths: Mapping[str, str], **fields
+) -> Pipeline:
     """Check the wiring of ``nodes`` and return the pipeline in topological order.
 
     ``wiring_paths`` maps a node key to the key path of its ``inputs`` table in the
@@ -92,36 +95,49 @@ def build(path: Path, name: str, nodes: list[Node], wiring_paths: Mapping[str, s
         for port, ref in node.inputs.items():
             at = f"{where}.{port}"
             if port not in stage.inputs:
-                raise ConfigError(f"{at}: stage {stage.name!r} has no input {port!r}; "
-                                  f"its inputs: {', '.join(stage.inputs) or 'none'}")
+                raise ConfigError(
+                    f"{at}: stage {stage.name!r} has no input {port!r}; "
+                    f"its inputs: {', '.join(stage.inputs) or 'none'}"
+                )
             expected = stage.inputs[port]
             found = _schema_of_ref(ref, by_key, at)
             if found != expected:
-                raise ConfigError(f"{at}: {str(ref)!r} is a table of schema {found!r}, but input {port!r} "
-                                  f"of stage {stage.name!r} expects schema {expected!r}")
-        missing = [p for p in stage.inputs if p not in node.inputs and p not in stage.optional_inputs]
+                raise ConfigError(
+                    f"{at}: {str(ref)!r} is a table of schema {found!r}, but input {port!r} "
+                    f"of stage {stage.name!r} expects schema {expected!r}"
+                )
+        missing = [
+            p for p in stage.inputs if p not in node.inputs and p not in stage.optional_inputs
+        ]
         if missing:
-            raise ConfigError(f"{where}: stage {stage.name!r} needs input(s) {', '.join(missing)}; "
-                              "wire each to 'session.<stream>' or '<stage>.<output>'")
+            raise ConfigError(
+                f"{where}: stage {stage.name!r} needs input(s) {', '.join(missing)}; "
+                "wire each to 'session.<stream>' or '<stage>.<output>'"
+            )
         graph[node.key] = {r.source for r in node.inputs.values() if not r.is_session}
     try:
         order = list(graphlib.TopologicalSorter(graph).static_order())
     except graphlib.CycleError as exc:
         cycle = exc.args[1]
-        raise ConfigError(f"{path}: stages: the inputs form a cycle {' -> '.join(reversed(cycle))}; "
-                          "a stage cannot depend on its own output") from None
+        raise ConfigError(
+            f"{path}: stages: the inputs form a cycle {' -> '.join(reversed(cycle))}; "
+            "a stage cannot depend on its own output"
+        ) from None
     return Pipeline(name=name, path=path, nodes={k: by_key[k] for k in order}, **fields)
 
 
-def check_export(path: Path, refs: list[str], nodes: Mapping[str, Node], where: str,
-                 schema: str | None) -> tuple[Ref, ...]:
+def check_export(
+    path: Path, refs: list[str], nodes: Mapping[str, Node], where: str, schema: str | None
+) -> tuple[Ref, ...]:
     """Resolve ``[export]`` references; with ``schema``, each must be a table of that schema."""
     out = []
     for i, text in enumerate(refs):
         at = f"{path}: {where}[{i}]"
         ref = parse_ref(text, at)
         if ref.is_session:
-            raise ConfigError(f"{at}: exports name stage outputs, not raw session streams ({text!r})")
+            raise ConfigError(
+                f"{at}: exports name stage outputs, not raw session streams ({text!r})"
+            )
         found = _schema_of_ref(ref, nodes, at)
         if schema is not None and found != schema:
             raise ConfigError(f"{at}: {text!r} is a table of schema {found!r}, expected {schema!r}")
@@ -132,13 +148,19 @@ def check_export(path: Path, refs: list[str], nodes: Mapping[str, Node], where: 
 def _schema_of_ref(ref: Ref, nodes: Mapping[str, Node], at: str) -> str:
     if ref.is_session:
         if ref.port not in SESSION_STREAMS:
-            raise ConfigError(f"{at}: no session stream {ref.port!r}; streams: {', '.join(SESSION_STREAMS)}")
+            raise ConfigError(
+                f"{at}: no session stream {ref.port!r}; streams: {', '.join(SESSION_STREAMS)}"
+            )
         return ref.port
     node = nodes.get(ref.source)
     if node is None:
-        raise ConfigError(f"{at}: refers to stage {ref.source!r}, which is not in this pipeline; "
-                          f"stages: {', '.join(sorted(nodes)) or 'none'}")
+        raise ConfigError(
+            f"{at}: refers to stage {ref.source!r}, which is not in this pipeline; "
+            f"stages: {', '.join(sorted(nodes)) or 'none'}"
+        )
     if ref.port not in node.stage.outputs:
-        raise ConfigError(f"{at}: stage {ref.source!r} ({node.stage.name}) has no output {ref.port!r}; "
-                          f"its outputs: {', '.join(node.stage.outputs)}")
+        raise ConfigError(
+            f"{at}: stage {ref.source!r} ({node.stage.name}) has no output {ref.port!r}; "
+            f"its outputs: {', '.join(node.stage.outputs)}"
+        )
     return node.stage.outputs[ref.port]

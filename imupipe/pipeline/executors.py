@@ -9,12 +9,14 @@ worker dies anyway, ``fn_failed(item, exc)`` of the batch turns it into a result
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
-from ..errors import require
+from ..errors import ImupipeError, require
 from ..hookspecs import hookimpl
 
 log = logging.getLogger("imupipe.pipeline")
@@ -40,8 +42,13 @@ class LocalExecutor:
 
     name = "local"
 
-    def map(self, fn: Callable[[Any], Any], items: list[Any], jobs: int | None,
-            on_result: OnResult = None) -> list[Any]:
+    def map(
+        self,
+        fn: Callable[[Any], Any],
+        items: list[Any],
+        jobs: int | None,
+        on_result: OnResult = None,
+    ) -> list[Any]:
         jobs = min(_default_jobs(jobs), max(1, len(items)))
         results: list[Any] = [None] * len(items)
         if jobs == 1:
@@ -50,17 +57,36 @@ class LocalExecutor:
                 if on_result:
                     on_result(i, results[i])
             return results
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            futures = {pool.submit(fn, item): i for i, item in enumerate(items)}
-            for future in as_completed(futures):
-                i = futures[future]
-                try:
-                    results[i] = future.result()
-                except Exception as exc:  # noqa: BLE001 - a worker process died (BrokenProcessPool)
-                    results[i] = _crashed(items[i], exc)
-                if on_result:
-                    on_result(i, results[i])
+        # spawn, not fork: a forked child of a process whose Arrow/Polars thread pools are
+        # running can deadlock; spawned workers import ``fn`` by name instead
+        context = multiprocessing.get_context("spawn")
+        unfinished = _pool(fn, items, list(range(len(items))), jobs, results, on_result, context)
+        for (
+            i
+        ) in unfinished:  # a worker died: rerun the rest one per pool, so only the culprit fails
+            _pool(fn, items, [i], 1, results, on_result, context, last_try=True)
         return results
+
+
+def _pool(fn, items, indices, jobs, results, on_result, context, last_try=False) -> list[int]:
+    """Run ``items[indices]`` in one process pool; return those cut short by a dead worker."""
+    broken = []
+    with ProcessPoolExecutor(max_workers=min(jobs, len(indices)), mp_context=context) as pool:
+        futures = {pool.submit(fn, items[i]): i for i in indices}
+        for future in as_completed(futures):
+            i = futures[future]
+            try:
+                results[i] = future.result()
+            except BrokenProcessPool as exc:
+                if not last_try:
+                    broken.append(i)
+                    continue
+                results[i] = _crashed(items[i], exc)
+            except Exception as exc:  # noqa: BLE001 - e.g. the job could not be pickled
+                results[i] = _crashed(items[i], exc)
+            if on_result:
+                on_result(i, results[i])
+    return sorted(broken)
 
 
 class DaskExecutor:
@@ -72,17 +98,32 @@ class DaskExecutor:
 
     name = "dask"
 
-    def map(self, fn: Callable[[Any], Any], items: list[Any], jobs: int | None,
-            on_result: OnResult = None) -> list[Any]:
+    def map(
+        self,
+        fn: Callable[[Any], Any],
+        items: list[Any],
+        jobs: int | None,
+        on_result: OnResult = None,
+    ) -> list[Any]:
         distributed = require("distributed", "dask")
         address = os.environ.get(SCHEDULER_ENV)
         cluster = None
         if address:
-            client = distributed.Client(address)
+            try:
+                client = distributed.Client(address, timeout="10s")
+            except (OSError, TimeoutError) as exc:
+                raise ImupipeError(
+                    f"cannot reach the Dask scheduler at {address!r} (${SCHEDULER_ENV}): {exc}; "
+                    "start it, or unset the variable to use a local cluster"
+                ) from None
         else:
-            cluster = distributed.LocalCluster(n_workers=_default_jobs(jobs), threads_per_worker=1,
-                                               processes=True, dashboard_address=None,
-                                               silence_logs=logging.ERROR)
+            cluster = distributed.LocalCluster(
+                n_workers=_default_jobs(jobs),
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+                silence_logs=logging.ERROR,
+            )
             client = distributed.Client(cluster)
         try:
             futures = client.map(fn, items, pure=False)

@@ -42,8 +42,14 @@ class StageRecord:
     seconds: float = 0.0
 
     def to_dict(self) -> dict:
-        return {"status": self.status, "key": self.key, "parts": self.parts, "outputs": self.outputs,
-                "reason": self.reason, "seconds": round(self.seconds, 6)}
+        return {
+            "status": self.status,
+            "key": self.key,
+            "parts": self.parts,
+            "outputs": self.outputs,
+            "reason": self.reason,
+            "seconds": round(self.seconds, 6),
+        }
 
 
 @dataclass
@@ -74,13 +80,18 @@ class SessionRun:
 class _Source:
     """The session's raw streams, read only when first needed."""
 
-    def __init__(self, path: Path, pipeline: Pipeline, registry: Registry, digest: str,
-                 previous: dict | None):
+    def __init__(
+        self, path: Path, pipeline: Pipeline, registry: Registry, digest: str, previous: dict | None
+    ):
         self.path, self.pipeline, self.registry, self.digest = path, pipeline, registry, digest
         self._streams: dict[str, pa.Table] | None = None
         self._names: list[str] | None = None
-        if previous and previous.get("session_digest") == digest \
-                and previous.get("device") == pipeline.device and "streams" in previous:
+        if (
+            previous
+            and previous.get("session_digest") == digest
+            and previous.get("device") == pipeline.device
+            and "streams" in previous
+        ):
             self._names = list(previous["streams"])  # known from the last run of the same bytes
 
     def _read(self) -> dict[str, pa.Table]:
@@ -99,12 +110,23 @@ class _Source:
         return self._read()[stream]
 
 
-def run_session(session: Path, pipeline: Pipeline, registry: Registry, cache: Cache,
-                manifest_path: Path, on_stage: Callable[[str, StageRecord], None] | None = None) -> SessionRun:
+def run_session(
+    session: Path,
+    pipeline: Pipeline,
+    registry: Registry,
+    cache: Cache,
+    manifest_path: Path,
+    on_stage: Callable[[str, StageRecord], None] | None = None,
+) -> SessionRun:
     """Run ``pipeline`` on ``session``; write the run manifest (also when a stage fails)."""
     session = Path(session)
     if not session.exists():
         raise ImupipeError(f"{session}: no such file")
+    if session.is_dir():
+        raise ImupipeError(
+            f"{session}: is a directory; give a recording file or a session.toml "
+            "(imupipe batch takes folders)"
+        )
     digest = session_digest(session)
     source = _Source(session, pipeline, registry, digest, read_manifest(manifest_path))
     run = SessionRun(session, pipeline, cache)
@@ -119,12 +141,19 @@ def run_session(session: Path, pipeline: Pipeline, registry: Registry, cache: Ca
         error = f"{type(exc).__name__}: {exc}"
         raise
     finally:
-        write_manifest(manifest_path, {
-            "session": str(session.resolve()), "session_digest": digest, "device": pipeline.device,
-            "streams": source._names, "pipeline": {"name": pipeline.name, "path": str(pipeline.path)},
-            "imupipe_version": __version__, "error": error,
-            "stages": {k: r.to_dict() for k, r in run.records.items()},
-        })
+        write_manifest(
+            manifest_path,
+            {
+                "session": str(session.resolve()),
+                "session_digest": digest,
+                "device": pipeline.device,
+                "streams": source._names,
+                "pipeline": {"name": pipeline.name, "path": str(pipeline.path)},
+                "imupipe_version": __version__,
+                "error": error,
+                "stages": {k: r.to_dict() for k, r in run.records.items()},
+            },
+        )
     return run
 
 
@@ -178,13 +207,17 @@ def _input_digest(ref: Ref, run: SessionRun, source: _Source) -> tuple[str | Non
 
 def _check_outputs(node: Node, outputs: object, where: str) -> None:
     if not isinstance(outputs, dict):
-        raise SchemaError(f"{where}: returned {type(outputs).__name__}, expected a dict of tables "
-                          f"({', '.join(node.stage.outputs)})")
+        raise SchemaError(
+            f"{where}: returned {type(outputs).__name__}, expected a dict of tables "
+            f"({', '.join(node.stage.outputs)})"
+        )
     missing = [p for p in node.stage.outputs if p not in outputs]
     extra = [p for p in outputs if p not in node.stage.outputs]
     if missing or extra:
-        raise SchemaError(f"{where}: returned outputs {sorted(outputs)}, declared "
-                          f"{sorted(node.stage.outputs)}; fix the stage or its declaration")
+        raise SchemaError(
+            f"{where}: returned outputs {sorted(outputs)}, declared "
+            f"{sorted(node.stage.outputs)}; fix the stage or its declaration"
+        )
     for port, schema_id in node.stage.outputs.items():
         schemas.check(outputs[port], schema_id, f"{where} output {port!r}")
 

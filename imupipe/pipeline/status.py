@@ -23,13 +23,18 @@ class StageState:
     reasons: tuple[str, ...] = ()
 
 
-def stage_states(pipeline: Pipeline, session: Path, manifest: dict | None, cache: Cache) -> list[StageState]:
+def stage_states(
+    pipeline: Pipeline, session: Path, manifest: dict | None, cache: Cache
+) -> list[StageState]:
     """The state of every stage of ``pipeline`` on ``session`` given its last run manifest."""
     manifest = manifest or {}
     records = manifest.get("stages", {})
     digest = session_digest(session) if Path(session).is_file() else None
-    same_session = digest is not None and digest == manifest.get("session_digest") \
+    same_session = (
+        digest is not None
+        and digest == manifest.get("session_digest")
         and manifest.get("device") == pipeline.device
+    )
     streams = manifest.get("streams") if same_session else None
     fresh_outputs: dict[str, dict] = {}
     skipped: set[str] = set()
@@ -46,11 +51,15 @@ def stage_states(pipeline: Pipeline, session: Path, manifest: dict | None, cache
             states.append(StageState(key, "skipped", (why_skip,)))
             continue
         if rec is None or rec.get("status") not in ("ran", "cached") or not rec.get("parts"):
-            why = "never run" if rec is None else f"not run last time ({rec.get('reason') or rec.get('status')})"
+            why = (
+                "never run"
+                if rec is None
+                else f"not run last time ({rec.get('reason') or rec.get('status')})"
+            )
             states.append(StageState(key, "stale", (why,)))
             continue
         old = KeyParts.from_dict(rec["parts"])
-        reasons, inputs, unknown = [], {}, set()
+        inputs, unknown, stale_up = {}, set(), []
         for port, ref in node.inputs.items():
             if ref.is_session:
                 if streams is None or ref.port in streams:  # else an absent optional stream
@@ -59,10 +68,16 @@ def stage_states(pipeline: Pipeline, session: Path, manifest: dict | None, cache
                 inputs[port] = fresh_outputs[ref.source].get(ref.port, "")
             elif ref.source not in skipped:
                 unknown.add(port)
-                reasons.append(f"upstream {ref.source!r} is stale (reruns unless its output comes out "
-                               "unchanged)")
+                if ref.source not in stale_up:
+                    stale_up.append(ref.source)
         new = key_parts(node, inputs)
-        reasons = _differences(old, new, node.inputs, set(inputs) | unknown) + reasons
+        reasons = _differences(old, new, node.inputs, set(inputs) | unknown)
+        if stale_up:
+            names = ", ".join(repr(s) for s in stale_up)
+            reasons.append(
+                f"upstream {names} {'is' if len(stale_up) == 1 else 'are'} stale "
+                "(reruns unless the upstream output comes out unchanged)"
+            )
         if not reasons and cache.digests(new.key) is None:
             reasons.append("its cached outputs are gone")
         if reasons:
@@ -92,11 +107,15 @@ def _differences(old: KeyParts, new: KeyParts, wiring, wired: set[str]) -> list[
         out.append(f"version changed {old.version} -> {new.version}")
     out += _dict_changes("param", old.params, new.params)
     if (old.solver or {}).get("name") != (new.solver or {}).get("name"):
-        out.append(f"solver changed {(old.solver or {}).get('name')} -> {(new.solver or {}).get('name')}")
+        out.append(
+            f"solver changed {(old.solver or {}).get('name')} -> {(new.solver or {}).get('name')}"
+        )
     elif old.solver and new.solver:
         if old.solver["version"] != new.solver["version"]:
-            out.append(f"solver {new.solver['name']} version changed {old.solver['version']} -> "
-                       f"{new.solver['version']}")
+            out.append(
+                f"solver {new.solver['name']} version changed {old.solver['version']} -> "
+                f"{new.solver['version']}"
+            )
         out += _dict_changes("solver param", old.solver["params"], new.solver["params"])
     for port in sorted(set(old.inputs) | wired):
         if port not in old.inputs:
@@ -125,8 +144,10 @@ def _dict_changes(label: str, old: dict, new: dict) -> list[str]:
 def render(session: Path, pipeline: Pipeline, states: list[StageState], run_dir: Path) -> str:
     """Text for one session: a header, then one line per stage."""
     stale = sum(s.state == "stale" for s in states)
-    head = (f"{session}  (pipeline {pipeline.name!r}, results in {run_dir}): "
-            f"{stale} stale, {sum(s.state == 'fresh' for s in states)} fresh")
+    head = (
+        f"{session}  (pipeline {pipeline.name!r}, results in {run_dir}): "
+        f"{stale} stale, {sum(s.state == 'fresh' for s in states)} fresh"
+    )
     width = max((len(s.stage) for s in states), default=0)
     lines = [head]
     for s in states:

@@ -121,3 +121,28 @@ def decode(kind: str, buf: np.ndarray, starts: np.ndarray, lengths: np.ndarray
         raise NotCovered(f"a {KIND_SCHEMA[kind]} message does not have the standard layout")
     block = rows(buf, at + 8 * first, 8 * (last - first)).view("<f8")
     return head[:, 1].view("<i4").astype(np.int64), head[:, 2].astype(np.int64), block
+
+
+def decode_rows(kind: str, rows: np.ndarray, start: int, strlen: int, lengths: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Like ``decode`` for messages already gathered as rows, all with one frame_id length.
+
+    ``rows`` (n, width) uint8 holds each message's data from column ``start``,
+    through the ``SPAN[kind]`` words of its float block; ``strlen`` is the
+    frame_id length (with NUL) of every message, ``lengths`` (n,) their data
+    lengths. Returns None when a message's frame_id length differs (use
+    ``decode``); raises ``NotCovered`` as ``decode`` does.
+    """
+    first, last = SPAN[kind]
+    block_at = start + block_offset(strlen)
+    if rows.shape[1] < block_at + 8 * last:
+        raise ValueError(f"rows of {rows.shape[1]} bytes do not reach word {last} of the block")
+    if not (rows[:, start + 12:start + 16].view("<u4")[:, 0] == strlen).all():
+        return None
+    if not ((rows[:, start] == 0) & (rows[:, start + 1] == 1)).all():
+        raise NotCovered("a message is not little-endian CDR")
+    if not (lengths == block_offset(strlen) + 8 * WORDS[kind]).all():
+        raise NotCovered(f"a {KIND_SCHEMA[kind]} message does not have the standard layout")
+    sec = rows[:, start + 4:start + 8].view("<i4")[:, 0].astype(np.int64)
+    nanosec = rows[:, start + 8:start + 12].view("<u4")[:, 0].astype(np.int64)
+    return sec, nanosec, rows[:, block_at + 8 * first:block_at + 8 * last].view("<f8")

@@ -8,7 +8,7 @@ vector's magnitude (the paper's unit g) and returned in SI.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar, Literal
 
 import numpy as np
@@ -162,6 +162,20 @@ class EllipsoidCholesky:
 
         J = jacobian(pack, shape.d)
         cov = J @ shape.d_cov @ J.T
+        refs = [i for i in (obs.y_up, obs.x_up) if i is not None]
+        if refs and obs.cov is not None:
+            # the frame also carries the noise of the reference rests' own means
+            def pack_refs(v: np.ndarray) -> np.ndarray:
+                y = obs.y.copy()
+                y[refs] = v.reshape(len(refs), 3)
+                m, bb, _ = correction(shape, shape.d, replace(obs, y=y), params)
+                return np.concatenate([(unit * m).ravel(), bb])
+
+            J_r = jacobian(pack_refs, obs.y[refs].ravel())
+            cov_r = np.zeros((3 * len(refs),) * 2)
+            for k, i in enumerate(refs):
+                cov_r[3 * k:3 * k + 3, 3 * k:3 * k + 3] = obs.cov[i]
+            cov = cov + J_r @ cov_r @ J_r.T
         details = {
             **info, "n_positions": len(obs.y), "coverage": coverage(obs.y - b),
             "algebraic_residual_rms": shape.residual_rms, "rho": shape.rho,

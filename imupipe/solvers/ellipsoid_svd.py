@@ -11,7 +11,8 @@ Gravity alone fixes ``W``, i.e. ``MS`` up to a rotation: ``MS Q`` for any orthog
 ``Q`` fits equally well. The paper fixes it by its frame ``A0`` (x along the
 accelerometer's x axis, y in its xy plane), i.e. ``MS`` lower-triangular (Eq. (1.3)):
 the Cholesky factor of ``W^-1``. ``square_root = "symmetric"`` takes the principal
-root instead (the frame closest to the sensor's own axes).
+root instead (the frame closest to the sensor's own axes); ``"upper_correction"``
+makes the correction ``M`` upper-triangular, imu_tk's ``T K`` (Tedaldi 2014).
 
 In imupipe's notation the forward matrix is ``S = MS`` and the correction ``M = S^-1``.
 """
@@ -29,11 +30,17 @@ from ..observations import EllipsoidObservations, TriadFit
 from .triad_covariance import ellipsoid_uncertainty
 
 MIN_RESTS = 9  # nine independent constants: W (6) and b (3)
+MIN_RESTS_DIAGONAL = 6  # without misalignment: three scales and three biases
+FORMS = {"cholesky": "lower", "symmetric": "symmetric", "upper_correction": "upper"}  # free entries of S
 
 
 class EllipsoidSVDParams(Params):
-    square_root: Literal["cholesky", "symmetric"] = "cholesky"
-    """How ``MS = sqrt(W^-1)`` picks the frame: lower-triangular (Eq. (1.3)) or symmetric."""
+    square_root: Literal["cholesky", "symmetric", "upper_correction"] = "cholesky"
+    """How ``MS = sqrt(W^-1)`` picks the frame: lower-triangular (Eq. (1.3)), symmetric, or
+    the correction upper-triangular (imu_tk's convention)."""
+    misalignment: bool = True
+    """False: axis-aligned ellipsoid (``S^A = I``, 6 constants, Eq. (2.7) without the cross
+    terms); for protocols with six poses only (Ferraris), which cannot fix nine."""
 
 
 def quadric_rows(a: np.ndarray) -> np.ndarray:
@@ -56,17 +63,22 @@ def quadric_to_W_b(alpha: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     return W, b, g2
 
 
-def fit_quadric(y: np.ndarray, magnitude: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def fit_quadric(y: np.ndarray, magnitude: float,
+                misalignment: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``W`` (3, 3) 1/unit^2, ``b`` (3,) and the smallest singular values, from rests ``y`` (n, 3).
 
     The readings are centred and scaled to O(1) first so that the columns of ``F``
-    are comparable; the quadric is mapped back exactly afterwards.
+    are comparable; the quadric is mapped back exactly afterwards. Without
+    ``misalignment`` the cross terms are left out (an axis-aligned ellipsoid).
     """
     c = y.mean(axis=0)
     s = float(np.sqrt(np.mean(np.sum((y - c) ** 2, axis=1))))
     u = (y - c) / s
-    _, sv, vt = np.linalg.svd(quadric_rows(u), full_matrices=False)  # Eq. (2.9)
-    alpha = vt[-1]
+    F = quadric_rows(u)
+    cols = np.arange(10) if misalignment else np.array([0, 1, 2, 6, 7, 8, 9])
+    _, sv, vt = np.linalg.svd(F[:, cols], full_matrices=True)  # Eq. (2.9); vt square
+    alpha = np.zeros(10)
+    alpha[cols] = vt[-1]
     W_u, b_u, g2 = quadric_to_W_b(alpha)
     if g2 == 0 or not np.isfinite(g2):
         raise SolverError("ellipsoid_svd: the rests do not determine a quadric; record rests "
@@ -84,6 +96,8 @@ def square_root_inverse(W: np.ndarray, how: str) -> np.ndarray:
     try:
         if how == "cholesky":
             return np.linalg.cholesky(np.linalg.inv(W))
+        if how == "upper_correction":  # W = M^T M with M = L^T upper-triangular
+            return np.linalg.inv(np.linalg.cholesky(W).T)
         return np.real(sqrtm(np.linalg.inv(W)))
     except np.linalg.LinAlgError:
         raise SolverError("ellipsoid_svd: the fitted quadric is not an ellipsoid (W not positive "
@@ -108,18 +122,27 @@ class EllipsoidSVD:
     def solve(self, observations: EllipsoidObservations, params: EllipsoidSVDParams) -> TriadFit:
         y = np.asarray(observations.y, dtype=float)
         n = len(y)
-        if n < MIN_RESTS:
+        need = MIN_RESTS if params.misalignment else MIN_RESTS_DIAGONAL
+        if n < need:
             raise SolverError(
-                f"ellipsoid_svd: {n} rests for 9 accelerometer constants; record at least "
-                f"{MIN_RESTS - n} more distinct static positions (20 or more spread over the sphere "
+                f"ellipsoid_svd: {n} rests for {need} accelerometer constants; record at least "
+                f"{need - n} more distinct static positions (20 or more spread over the sphere "
                 "for useful uncertainties)"
+                + ("" if not params.misalignment else
+                   ", or fit scales and biases only with solver_params misalignment = false")
             )
         g = float(observations.magnitude)
-        W, b, sv = fit_quadric(y, g)
-        S = square_root_inverse(W, params.square_root)
+        W, b, sv = fit_quadric(y, g, params.misalignment)
+        if np.linalg.eigvalsh(W).min() <= 0:
+            raise SolverError("ellipsoid_svd: the fitted quadric is not an ellipsoid (W not positive "
+                              "definite); the rests are too few or too clustered, record positions "
+                              "spread over the whole sphere (each axis up and down)")
+        if params.misalignment:
+            S, form = square_root_inverse(W, params.square_root), FORMS[params.square_root]
+        else:
+            S, form = np.diag(1.0 / np.sqrt(np.diag(W))), "diagonal"
         M = np.linalg.inv(S)
-        fit = ellipsoid_uncertainty(y, np.asarray(observations.cov, float), M, b, g,
-                                    lower=params.square_root == "cholesky")
+        fit = ellipsoid_uncertainty(y, np.asarray(observations.cov, float), M, b, g, form=form)
         cov12 = fit.pop("cov12")
         scales, misalignment = scale_and_misalignment(S)
         details = {
@@ -127,7 +150,7 @@ class EllipsoidSVD:
             "paper_scale": scales.tolist(),
             "paper_misalignment": misalignment.tolist(),
             "singular_values_tail": sv[-3:].tolist(),
-            "square_root": params.square_root,
+            "square_root": params.square_root if params.misalignment else "diagonal",
             "magnitude": g,
         }
         return TriadFit(M, b, cov12, details)

@@ -17,6 +17,8 @@ gyro ends up in the accelerometer's frame. Rotations are integrated exactly
 
 from __future__ import annotations
 
+import itertools
+import warnings
 from typing import ClassVar, Literal
 
 import numpy as np
@@ -24,21 +26,28 @@ from scipy.optimize import least_squares
 
 from ..components import Params
 from ..errors import SolverError
-from ..observations import GyroObservations, TriadFit
+from ..observations import GyroObservations, TriadFit, Turns
 from .rotation_integration import pad_turns, turn_rotations
 from .triad_covariance import gauss_newton_cov
 
 MIN_TURNS = 5  # each turn gives two equations for nine constants
+MIN_RAIL_RUN = 2  # consecutive samples at a rail that mean clipping
 
 
 class GyroIntegrationParams(Params):
-    bias: Literal["all_rests", "adjacent_rests"] = "all_rests"
+    bias: Literal["all_rests", "adjacent_rests", "first_rest"] = "all_rests"
     """all_rests: one bias, the mean over every rest (Eq. (2.15)); adjacent_rests: each turn
-    uses the mean of the rests before and after it (a bias that wanders between rests)."""
+    uses the mean of the rests before and after it (a bias that wanders between rests);
+    first_rest: the first rest's mean (imu_tk's initial static interval)."""
     fit_bias: bool = False
     """Also refine the bias in the optimisation (the paper keeps Eq. (2.15)'s mean)."""
     max_nfev: int = 200
     """Cost evaluations the optimiser may spend."""
+    exclude_saturated: bool = True
+    """Leave out turns whose gyro clips (runs of samples at the axis's extreme value, or
+    beyond ``saturation_rad_s``), with a warning: a clipped rate cannot be integrated."""
+    saturation_rad_s: float | None = None
+    """The gyro's range in rad/s when known; None: detect clipping from the data."""
     scale_search: bool = True
     """Start from the best ``s I`` on a grid around the turn angles implied by gravity (the
     paper's ``theta_0 = I`` only works for readings already near SI; raw counts need this)."""
@@ -54,6 +63,54 @@ def rest_bias(bias: np.ndarray, bias_cov: np.ndarray) -> tuple[np.ndarray, np.nd
     mean = w @ bias
     cov = np.einsum("n,nij->ij", w**2, bias_cov)
     return mean, cov
+
+
+def saturated_turns(turns: Turns, limit: float | None = None) -> tuple[np.ndarray, int, list[str]]:
+    """Turns holding clipped gyro samples: mask (m,), the number of such samples, the axes.
+
+    With ``limit`` (rad/s) a sample is clipped when ``|w| >= limit``. Otherwise a rail is
+    an axis's largest or smallest value over all turns, held for ``MIN_RAIL_RUN`` or more
+    consecutive samples, whose magnitude is also the rail of another axis or sign: the
+    triad's common full scale. (A single axis resting at its extreme is a constant-rate
+    turn, not clipping.)
+    """
+    if not len(turns):
+        return np.zeros(0, bool), 0, []
+    w = np.concatenate(turns.gyro)
+    flag = np.zeros(w.shape, bool)
+    if limit is not None:
+        flag = np.abs(w) >= limit
+    else:
+        rails = []  # (axis, value, run mask)
+        for ax in range(3):
+            for rail in (w[:, ax].max(), w[:, ax].min()):
+                at = np.abs(w[:, ax] - rail) <= 1e-9 * max(abs(rail), 1e-300)
+                edges = np.diff(np.concatenate([[0], at.astype(np.int8), [0]]))
+                run = np.zeros(len(w), bool)
+                for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True):
+                    if b - a >= MIN_RAIL_RUN:
+                        run[a:b] = True
+                if run.any() and rail != 0:
+                    rails.append((ax, rail, run))
+        for i, (ax, rail, run) in enumerate(rails):
+            shared = any(j != i and abs(abs(r) - abs(rail)) <= 1e-6 * abs(rail)
+                         for j, (_, r, _) in enumerate(rails))
+            if shared:
+                flag[:, ax] |= run
+    bounds = np.cumsum([0] + [len(g) for g in turns.gyro])
+    per_turn = np.array([flag[a:b].any() for a, b in itertools.pairwise(bounds)])
+    axes = [a for a, f in zip("xyz", flag.any(axis=0), strict=True) if f]
+    return per_turn, int(flag.any(axis=1).sum()), axes
+
+
+def drop_saturated(turns: Turns, limit: float | None, who: str) -> Turns:
+    """``turns`` without the clipped ones, warning how many were left out."""
+    bad, n_samples, axes = saturated_turns(turns, limit)
+    if bad.any():
+        warnings.warn(f"{who}: {int(bad.sum())} of {len(turns)} turns hold {n_samples} saturated gyro "
+                      f"samples (axes {', '.join(axes)}); those turns are left out", stacklevel=3)
+        return turns.subset(~bad)
+    return turns
 
 
 def initial_scale(rate: np.ndarray, dt: np.ndarray, g0: np.ndarray, g1: np.ndarray,
@@ -89,11 +146,15 @@ class GyroIntegration:
 
     def solve(self, observations: GyroObservations, params: GyroIntegrationParams) -> TriadFit:
         turns = observations.turns
+        n_all = len(turns)
+        if params.exclude_saturated:
+            turns = drop_saturated(turns, params.saturation_rad_s, "gyro_integration")
         m = len(turns)
         if m < MIN_TURNS:
+            left = f" ({n_all - m} left out as saturated)" if m < n_all else ""
             raise SolverError(
-                f"gyro_integration: {m} turns between rests for 9 gyroscope constants; record at "
-                f"least {MIN_TURNS - m} more turns (about all three axes)"
+                f"gyro_integration: {m} usable turns between rests{left} for 9 gyroscope constants; "
+                f"record at least {MIN_TURNS - m} more turns (about all three axes)"
             )
         gravity = np.asarray(observations.gravity, float)
         gravity = gravity / np.linalg.norm(gravity, axis=1, keepdims=True)
@@ -101,6 +162,8 @@ class GyroIntegration:
         rate, dt = pad_turns(turns.t, turns.gyro)
         b, b_cov = rest_bias(np.asarray(observations.bias, float),
                              np.asarray(observations.bias_cov, float))
+        if params.bias == "first_rest":
+            b, b_cov = np.asarray(observations.bias, float)[0], np.asarray(observations.bias_cov, float)[0]
 
         def unpack(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             return theta[:9].reshape(3, 3), (theta[9:] if params.fit_bias else b)
@@ -133,8 +196,10 @@ class GyroIntegration:
             )
         ssr = float(sol.fun @ sol.fun)
         dof = 2 * m - len(theta0)  # the along-gravity residual component is second order
-        sigma2 = ssr / dof if dof > 0 else np.nan
-        cov_p, _ = gauss_newton_cov(J * np.sqrt(1.0 / sigma2) if dof > 0 else J, 0.0, dof)
+        if dof > 0:  # noise level from the residuals themselves
+            cov_p, _ = gauss_newton_cov(J * np.sqrt(dof / ssr), 0.0, dof)
+        else:  # as many constants as equations: no honest uncertainty
+            cov_p = np.full((len(theta0), len(theta0)), np.nan)
         cov12 = np.full((12, 12), np.nan)
         cov12[:9, :9] = cov_p[:9, :9]
         cov12[9:, 9:] = cov_p[9:, 9:] if params.fit_bias else b_cov
@@ -146,6 +211,7 @@ class GyroIntegration:
         res_deg = np.degrees(np.linalg.norm(sol.fun.reshape(m, 3), axis=1))
         details = {
             "turns": m,
+            "turns_saturated": n_all - m,
             "rms_gravity_mismatch_deg": float(np.sqrt(np.mean(res_deg**2))),
             "max_gravity_mismatch_deg": float(res_deg.max()),
             "cost_evaluations": int(sol.nfev),

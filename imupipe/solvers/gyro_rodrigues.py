@@ -17,7 +17,6 @@ from __future__ import annotations
 from typing import ClassVar
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from ..components import Params
 from ..errors import SolverError
@@ -31,13 +30,15 @@ class GyroRodriguesParams(Params):
     """``exact_rotation``: integrate the rate as a rotation (True) or the paper's
     small-angle sum (False). ``min_tilt_deg``: turns that move gravity by less are
     uninformative (rotation about the vertical) and skipped. ``iterations``: fixed-point
-    passes of the exact mode. ``max_scale_turn_deg``: in small-angle mode the scale (eq. 37
+    passes of the exact mode (at most), stopping when M changes by less than
+    ``tolerance``. ``max_scale_turn_deg``: in small-angle mode the scale (eq. 37
     over all turns) uses turns up to this angle only (eq. 28 fails for large turns)."""
 
     exact_rotation: bool = True
     min_tilt_deg: float = 0.5
     min_turns: int = MIN_TURNS
-    iterations: int = 4
+    iterations: int = 40
+    tolerance: float = 1e-10
     max_scale_turn_deg: float = 60.0
 
 
@@ -114,40 +115,52 @@ class GyroRodrigues:
         S = (g0 + g1) / np.linalg.norm(g0 + g1, axis=1, keepdims=True).clip(1e-300)
         Gs = np.einsum("ki,kj->kij", C, C) + np.einsum("ki,kj->kij", S, S) - np.eye(3)  # Eq. (31)
 
-        M = np.eye(3)
         used = [rates[j] for j in use]
-        passes = params.iterations if params.exact_rotation else 1
-        for _ in range(passes):
+        Gu = Gs[use]
+
+        def step(M: np.ndarray, beta: float | None):
+            """One pass: LS of eq. (36) with Y~ from the current M, then the scale (eq. 37)."""
             # Y~ such that M Y~ is the rotation of the corrected rates (eq. 29 when small-angle)
             Yts = rotations_of(used, M, True) @ np.linalg.inv(M).T if params.exact_rotation \
                 else rotations_of(used, np.eye(3), False)
-            rows, rhs = [], []
-            for G, Yt in zip(Gs[use], Yts, strict=True):
-                H, z = design(G, Yt / max(np.linalg.norm(Yt), 1e-12))
-                rows.append(H)
-                rhs.append(z)
-            H, Z = np.vstack(rows), np.concatenate(rhs)
+            rows = [design(G, Yt / max(np.linalg.norm(Yt), 1e-12)) for G, Yt in zip(Gu, Yts, strict=True)]
+            H, Z = np.vstack([r[0] for r in rows]), np.concatenate([r[1] for r in rows])
             m, *_ = np.linalg.lstsq(H, Z, rcond=None)  # Eq. (36)
             M_hat = np.array([[1.0, m[0], m[1]], [m[2], m[3], m[4]], [m[5], m[6], m[7]]])
-            beta, beta_var = self._scale(obs, rates, M_hat, g0, g1, use, params)
-            M = beta * M_hat  # Eq. (37)
+            beta, sel = self._scale(obs, rates, M_hat, g0, g1, use, params, beta)
+            return beta * M_hat, (H, Z, m, M_hat, beta, sel)  # Eq. (37)
 
-        r = Z - H @ m
-        s2 = float(r @ r / max(len(Z) - 8 - len(use) * 2, 1))  # each turn's G has rank 1
-        m_cov = s2 * np.linalg.pinv(H.T @ H)
-        J = np.zeros((9, 9))  # d vec(M) / d (m, beta)
-        for col, idx in enumerate([1, 2, 3, 4, 5, 6, 7, 8]):
-            J[idx, col] = beta
-        J[:, 8] = M_hat.ravel()
-        cov_mb = np.zeros((9, 9))
-        cov_mb[:8, :8], cov_mb[8, 8] = m_cov, beta_var
-        cov = np.full((12, 12), 0.0)
-        cov[:9, :9] = J @ cov_mb @ J.T
+        # fixed point M = F(M) (exact mode), with Anderson acceleration: large turns converge slowly
+        M, state = step(np.eye(3), None)
+        xs, fs = [], []
+        passes = 0
+        for passes in range(1, params.iterations if params.exact_rotation else 1):
+            M_next, state_next = step(M, state[4])
+            f = (M_next - M).ravel()
+            xs.append(M.ravel())
+            fs.append(f)
+            xs, fs = xs[-4:], fs[-4:]
+            if np.abs(f).max() < params.tolerance:
+                M, state = M_next, state_next
+                break
+            if len(fs) > 1:
+                dF = np.column_stack([fs[i + 1] - fs[i] for i in range(len(fs) - 1)])
+                dX = np.column_stack([xs[i + 1] - xs[i] for i in range(len(xs) - 1)])
+                gamma, *_ = np.linalg.lstsq(dF, f, rcond=None)
+                M = (M.ravel() + f - (dX + dF) @ gamma).reshape(3, 3)
+            else:
+                M = M_next
+            state = state_next
+        H, Z, m, M_hat, beta, sel = state
+        M = beta * M_hat
+
+        cov = np.zeros((12, 12))
+        cov[:9, :9] = self._covariance(H, Z, m, beta, rates, sel, g0, g1, params)
         b0 = obs.bias.mean(axis=0)
         cov[9:, 9:] = np.cov(obs.bias.T) / len(obs.bias) if len(obs.bias) > 1 else np.nan
         details = {
             "n_turns_used": len(use), "n_turns": len(obs.turns),
-            "exact_rotation": params.exact_rotation, "beta": float(beta),
+            "exact_rotation": params.exact_rotation, "beta": float(beta), "passes": passes + 1,
             "scale_from": "roll turn (eq. 37)" if obs.roll_turn is not None else "all turns",
             "max_turn_deg": float(np.degrees(np.linalg.norm(
                 rotations_of(used, M, True), axis=1)).max()),
@@ -155,11 +168,16 @@ class GyroRodrigues:
         return TriadFit(M, b0, cov, details)
 
     @staticmethod
-    def _scale(obs, rates, M_hat, g0, g1, use, params) -> tuple[float, float]:
-        """Scale beta of eq. (37) and its variance: the roll turn alone, else all turns."""
+    def _scale(obs, rates, M_hat, g0, g1, use, params, beta_prev) -> tuple[float, list[int]]:
+        """Scale beta of eq. (37) and the turns it used: the roll turn alone, else all turns.
+
+        Exact mode: Gauss-Newton steps on the gravity carried through each turn by the
+        scaled rates (from ``beta_prev`` when given); small-angle mode: LS of eq. (38).
+        """
         exact = params.exact_rotation
         sel = [obs.roll_turn] if obs.roll_turn is not None else list(use)
-        phis = rotations_of([rates[j] for j in sel], M_hat, True)
+        if obs.roll_turn is not None or not exact or beta_prev is None:
+            phis = rotations_of([rates[j] for j in sel], M_hat, True)
         if obs.roll_turn is None and not exact:
             small = np.degrees(np.linalg.norm(phis, axis=1)) <= params.max_scale_turn_deg
             if small.sum() < 1:
@@ -170,25 +188,72 @@ class GyroRodrigues:
         chosen = [rates[j] for j in sel]
         if obs.roll_turn is not None:
             d_gamma = np.arccos(np.clip(g0[sel[0]] @ g1[sel[0]], -1, 1))
-            return float(d_gamma / np.linalg.norm(phis[0])), 0.0  # Eq. (37)
-        s, d = g0[sel] + g1[sel], g1[sel] - g0[sel]
-        c = np.cross(0.5 * phis, s)
-        beta0 = float(-np.sum(c * d) / np.sum(c * c))  # small-angle LS of eq. (38)
-        if not exact:
-            r = d + beta0 * c
-            return beta0, float(np.sum(r * r) / max(3 * len(sel) - 1, 1) / np.sum(c * c))
+            return float(d_gamma / np.linalg.norm(phis[0])), sel  # Eq. (37)
+        if beta_prev is None or not exact:
+            s, d = g0[sel] + g1[sel], g1[sel] - g0[sel]
+            c = np.cross(0.5 * phis, s)
+            beta = float(-np.sum(c * d) / np.sum(c * c))  # small-angle LS of eq. (38)
+            if not exact:
+                return beta, sel
+        else:
+            beta = beta_prev
 
-        def cost(beta: float) -> float:
+        def resid(b: float) -> np.ndarray:
             # gravity before, carried by the scaled rates as a finite rotation, vs gravity after:
-            # Rodrigues' relation without tan(chi/2), so well-conditioned up to 180 deg and beyond
-            q = integrate_rotations([t for t, _ in chosen], [w @ (beta * M_hat).T for _, w in chosen])
-            return float(np.sum((carry_gravity(q, g0[sel]) - g1[sel]) ** 2))
+            # Rodrigues' relation without tan(chi/2), well-conditioned at any turn angle
+            q = integrate_rotations([t for t, _ in chosen], [w @ (b * M_hat).T for _, w in chosen])
+            return (carry_gravity(q, g0[sel]) - g1[sel]).ravel()
 
-        beta = float(minimize_scalar(cost, bracket=(0.98 * beta0, beta0), tol=1e-10).x)
-        h = 1e-5 * beta
-        curv = (cost(beta + h) - 2 * cost(beta) + cost(beta - h)) / h**2
-        s2 = cost(beta) / max(2 * len(sel) - 1, 1)  # a unit vector has 2 degrees of freedom
-        return beta, float(2 * s2 / curv) if curv > 0 else float("nan")
+        for _ in range(2 if beta_prev is not None else 4):
+            r0 = resid(beta)
+            h = 1e-6 * beta
+            J = (resid(beta + h) - r0) / h
+            beta -= float(J @ r0 / (J @ J))
+        return beta, sel
+
+    @staticmethod
+    def _covariance(H, Z, m, beta, rates, sel, g0, g1, params) -> np.ndarray:
+        """(9, 9) covariance of vec(M) from the stacked residuals, linearised at the solution.
+
+        The 8 entries m come from the rows of eq. (35) alone; beta minimises the scale
+        residuals (the gravity carried through the scale turns, exact; eq. 38 small-angle)
+        given m, so it inherits m's uncertainty through d beta / d m plus its own.
+        """
+        chosen = [rates[j] for j in sel]
+        a, b = g0[sel], g1[sel]
+
+        def scale_resid(x: np.ndarray) -> np.ndarray:
+            Mx = x[8] * np.array([[1.0, x[0], x[1]], [x[2], x[3], x[4]], [x[5], x[6], x[7]]])
+            if params.exact_rotation:
+                q = integrate_rotations([t for t, _ in chosen], [w @ Mx.T for _, w in chosen])
+                return (carry_gravity(q, a) - b).ravel()
+            phis = rotations_of(chosen, Mx, False)
+            return ((b - a) + np.cross(0.5 * phis, a + b)).ravel()  # Eq. (38)
+
+        x0 = np.append(m, beta)
+        r_s = scale_resid(x0)
+        J_s = np.empty((len(r_s), 9))
+        for i in range(9):
+            h = 1e-6 * max(abs(x0[i]), 1e-2)
+            xp = x0.copy()
+            xp[i] += h
+            J_s[:, i] = (scale_resid(xp) - r_s) / h
+        r_h = Z - H @ m
+        s2_h = float(r_h @ r_h) / max(len(Z) // 3 - 8, 1)  # G has rank 1: one equation per turn
+        dof_s = max((2 if params.exact_rotation else 3) * len(sel) - 1, 1)
+        s2_s = max(float(r_s @ r_s) / dof_s, 1e-30)
+        # the estimator: m from eq. (35) alone; beta minimises the scale residuals given m
+        cov_m = s2_h * np.linalg.pinv(H.T @ H)
+        J_m, J_b = J_s[:, :8], J_s[:, 8]
+        dbeta_dm = -(J_b @ J_m) / (J_b @ J_b)
+        A = np.vstack([np.eye(8), dbeta_dm])
+        cov_x = A @ cov_m @ A.T
+        cov_x[8, 8] += s2_s / (J_b @ J_b)
+        J = np.zeros((9, 9))  # d vec(M) / d (m, beta)
+        for col, idx in enumerate(range(1, 9)):
+            J[idx, col] = beta
+        J[:, 8] = np.concatenate([[1.0], m])  # vec(M_hat)
+        return J @ cov_x @ J.T
 
 
 COMPONENTS = [GyroRodrigues()]

@@ -11,7 +11,9 @@ whitened by its own noise::
     gyro mean at rest i     y_g,i = b_g                        cov: rest covariance / count
     turn j from p to q      u_q = R_j(M_g, b_g)^T u_p          cov: integrated gyro noise
 
-so the estimate is maximum likelihood for white sensor noise, and its
+plus, when the rests span a range of temperatures, the bias temperature
+coefficients ``k_a``, ``k_g`` (``+ k (T - 25)`` in every line above), so the
+estimate is maximum likelihood for white sensor noise, and its
 covariance is ``(J^T J)^-1`` of the whitened Jacobian at the optimum (the
 Cramer-Rao bound when evaluated at the truth). The earth's rotation is not in
 the model (15 deg/h; it biases ``b_g`` by its projection).
@@ -25,7 +27,7 @@ then conditional on that frame.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -34,11 +36,14 @@ from ..components import Params
 from ..errors import SolverError
 from ..models import T_REF_C, TriadCalibration
 from ..observations import Rests, TriadFit, Turns
+from .gyro_integration import drop_saturated
 from .rotation_integration import pad_turns, rotation_angle, turn_rotations
 from .triad_covariance import shape_basis
 
-N_MAIN = 21  # S_a (6), b_a (3), M_g (9), b_g (3)
-_LOWER = shape_basis(lower=True)  # (6, 3, 3)
+N_MAIN = 21  # S_a (6), b_a (3), M_g (9), b_g (3); then k_a, k_g (6) when fitted
+N_OUT = 30  # M_a (9), b_a (3), M_g (9), b_g (3), k_a (3), k_g (3)
+MIN_SPREAD_C = 2.0  # temperature range of the rests above which "auto" fits k
+_LOWER = shape_basis("lower")  # (6, 3, 3)
 
 
 class JointMLParams(Params):
@@ -46,6 +51,11 @@ class JointMLParams(Params):
     """Gauss-Newton / Levenberg-Marquardt iterations allowed."""
     keep_frame: bool = True
     """Return the result in the frame of the starting calibration (else the lower-triangular one)."""
+    saturation_rad_s: float | None = None
+    """The gyro's range when known; None: detect clipped turns from the data (left out)."""
+    fit_temperature: Literal["auto", "yes", "no"] = "auto"
+    """Also fit the bias temperature coefficients k of both triads (auto: when the rests span
+    2 degC or more); otherwise the start's k are applied unchanged."""
 
 
 @dataclass(frozen=True)
@@ -66,12 +76,16 @@ class JointObservations:
 
 @dataclass(frozen=True)
 class JointFit:
-    """``triads``: refined ``TriadFit`` per sensor; ``cov`` (24, 24) over
-    ``(M_a.ravel(), b_a, M_g.ravel(), b_g)``; ``details`` fit statistics."""
+    """``triads``: refined ``TriadFit`` per sensor; ``cov`` (30, 30) over
+    ``(M_a.ravel(), b_a, M_g.ravel(), b_g, k_a, k_g)`` (k rows zero when not fitted);
+    ``details`` fit statistics; ``k`` the temperature coefficients used per sensor
+    (fitted or the start's), ``sigma_k`` their 1-sigma when fitted."""
 
     triads: dict[str, TriadFit]
     cov: np.ndarray
     details: dict[str, Any] = field(default_factory=dict)
+    k: dict[str, np.ndarray] = field(default_factory=dict)
+    sigma_k: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def tangent_basis(u: np.ndarray) -> np.ndarray:
@@ -91,125 +105,138 @@ def _whitener(cov: np.ndarray) -> np.ndarray:
 class JointProblem:
     """The whitened residuals and Jacobian of the joint likelihood.
 
-    ``x = (S_a lower (6), b_a (3), M_g (9), b_g (3), delta (n, 2))``; the rest
-    directions are ``u_i = normalise(u0_i + B_i delta_i)``. Built once; the
-    turn weights are fixed at the start so the cost is one quadratic form.
+    ``x = (S_a lower (6), b_a (3), M_g (9), b_g (3), [k_a (3), k_g (3)], delta (n, 2))``;
+    the rest directions are ``u_i = normalise(u0_i + B_i delta_i)``. With ``fit_k`` the
+    temperature coefficients are unknowns (identifiable when the rests span a range of
+    temperatures); otherwise ``k_a``/``k_g`` are applied as given. Built once; the turn
+    weights are fixed at the start so the cost is one quadratic form.
     """
 
     def __init__(self, rests: Rests, turns: Turns, gravity: float, S_a: np.ndarray, b_a: np.ndarray,
                  M_g: np.ndarray, b_g: np.ndarray, k_a: np.ndarray | None = None,
-                 k_g: np.ndarray | None = None, u0: np.ndarray | None = None):
+                 k_g: np.ndarray | None = None, u0: np.ndarray | None = None, fit_k: bool = False):
         self.g = float(gravity)
         n = len(rests)
-        T = np.where(np.isfinite(rests.temperature), rests.temperature, T_REF_C) - T_REF_C
-        k_a = np.zeros(3) if k_a is None else k_a
-        k_g = np.zeros(3) if k_g is None else k_g
-        self.y_a = rests.need("accel") - np.outer(T, k_a)
-        self.y_g = rests.need("gyro") - np.outer(T, k_g)
+        self.fit_k = fit_k
+        self.nm = N_MAIN + (6 if fit_k else 0)
+        self.dT = np.where(np.isfinite(rests.temperature), rests.temperature, T_REF_C) - T_REF_C
+        self.k_a = np.zeros(3) if k_a is None else np.asarray(k_a, float)
+        self.k_g = np.zeros(3) if k_g is None else np.asarray(k_g, float)
+        self.y_a = rests.need("accel")
+        self.y_g = rests.need("gyro")
         self.W_a = _whitener(rests.cov_of_mean("accel"))
         self.W_g = _whitener(rests.cov_of_mean("gyro"))
         self.p, self.q = np.asarray(turns.before), np.asarray(turns.after)
-        rate, self.dt = pad_turns(turns.t, turns.gyro)
-        T_turn = 0.5 * (T[self.p] + T[self.q])
-        self.rate = rate - (T_turn[:, None] * k_g)[:, None, :] * (self.dt[..., None] > 0)
+        self.rate, self.dt = pad_turns(turns.t, turns.gyro)
+        self.dT_turn = 0.5 * (self.dT[self.p] + self.dT[self.q])  # the turn's temperature, degC - 25
         if u0 is None:
-            u0 = (self.y_a - b_a) @ np.linalg.inv(S_a).T
+            u0 = (self.y_a - np.outer(self.dT, self.k_a) - b_a) @ np.linalg.inv(S_a).T
         self.u0 = u0 / np.linalg.norm(u0, axis=1, keepdims=True)
         self.B = tangent_basis(self.u0)
-        # Turn noise: white gyro noise integrated over the turn, Eq. in docs/method-b.md.
+        # Turn noise: white gyro noise integrated over the turn (docs/method-b.md).
         sigma_g = np.median(rests.cov["gyro"], axis=0)
         sum_dt2 = np.sum(self.dt**2, axis=1)
         cov_phi = sum_dt2[:, None, None] * (M_g @ sigma_g @ M_g.T)
-        Rs = turn_rotations((self.rate - b_g) @ M_g.T, self.dt)
+        Rs = self._rotations(M_g, b_g, self.k_g)
         v = np.einsum("mji,mj->mi", Rs, self.u0[self.p])
         Vx = _skew(v)
         Eq = self.B[self.q]
         cov2 = np.einsum("mia,mij,mjk,mlk,mlb->mab", Eq, Vx, cov_phi, Vx, Eq)
         self.W_t = _whitener(cov2 + 1e-30 * np.eye(2))
         self.n = n
-        self.x0 = np.concatenate([S_a[np.tril_indices(3)], b_a, M_g.ravel(), b_g, np.zeros(2 * n)])
+        k = [self.k_a, self.k_g] if fit_k else []
+        self.x0 = np.concatenate([S_a[np.tril_indices(3)], b_a, M_g.ravel(), b_g, *k, np.zeros(2 * n)])
 
     # ------------------------------------------------------------------ model
     def unpack(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
+        """``(S_a, b_a, M_g, b_g, k_a, k_g, v)``; ``v`` (n, 3) the unnormalised directions."""
         S_a = np.zeros((3, 3))
         S_a[np.tril_indices(3)] = x[:6]
-        delta = x[N_MAIN:].reshape(self.n, 2)
+        k_a, k_g = (x[21:24], x[24:27]) if self.fit_k else (self.k_a, self.k_g)
+        delta = x[self.nm:].reshape(self.n, 2)
         v = self.u0 + np.einsum("nij,nj->ni", self.B, delta)
-        return S_a, x[6:9], x[9:18].reshape(3, 3), x[18:21], v
+        return S_a, x[6:9], x[9:18].reshape(3, 3), x[18:21], k_a, k_g, v
 
-    def _rotations(self, M_g: np.ndarray, b_g: np.ndarray) -> np.ndarray:
-        return turn_rotations((self.rate - b_g) @ M_g.T, self.dt)
+    def _rotations(self, M_g: np.ndarray, b_g: np.ndarray, k_g: np.ndarray) -> np.ndarray:
+        bias = b_g + np.outer(self.dT_turn, k_g)  # (m, 3)
+        return turn_rotations((self.rate - bias[:, None, :]) @ M_g.T, self.dt)
 
     def _turn_res(self, R: np.ndarray, u: np.ndarray) -> np.ndarray:
         d = np.einsum("mji,mj->mi", R, u[self.p]) - u[self.q]
         return np.einsum("mab,mib,mi->ma", self.W_t, self.B[self.q], d)
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
-        S_a, b_a, M_g, b_g, v = self.unpack(x)
+        S_a, b_a, M_g, b_g, k_a, k_g, v = self.unpack(x)
         u = v / np.linalg.norm(v, axis=1, keepdims=True)
-        r_a = np.einsum("nij,nj->ni", self.W_a, self.y_a - self.g * u @ S_a.T - b_a)
-        r_g = np.einsum("nij,nj->ni", self.W_g, self.y_g - b_g)
-        r_t = self._turn_res(self._rotations(M_g, b_g), u)
+        pred_a = self.g * u @ S_a.T + b_a + np.outer(self.dT, k_a)
+        r_a = np.einsum("nij,nj->ni", self.W_a, self.y_a - pred_a)
+        r_g = np.einsum("nij,nj->ni", self.W_g, self.y_g - b_g - np.outer(self.dT, k_g))
+        r_t = self._turn_res(self._rotations(M_g, b_g, k_g), u)
         return np.concatenate([r_a.ravel(), r_g.ravel(), r_t.ravel()])
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
-        """Dense (N, 21 + 2n): analytic except the gyro columns (central differences)."""
-        S_a, _, M_g, b_g, v = self.unpack(x)
-        n, m = self.n, len(self.p)
+        """Dense (N, nm + 2n): analytic except the gyro columns (central differences)."""
+        S_a, _, M_g, b_g, _, k_g, v = self.unpack(x)
+        n, m, nm = self.n, len(self.p), self.nm
         nv = np.linalg.norm(v, axis=1)
         u = v / nv[:, None]
         # du/ddelta = (I - u u^T) B / |v|
         du = np.einsum("nij,njk->nik", np.eye(3) - np.einsum("ni,nj->nij", u, u), self.B) / nv[:, None, None]
-        P = N_MAIN + 2 * n
+        P = nm + 2 * n
         J = np.zeros((3 * n + 3 * n + 2 * m, P))
-        ra = slice(0, 3 * n)
         J_a = np.zeros((n, 3, P))
         J_a[:, :, :6] = -self.g * np.einsum("nij,kjl,nl->nik", self.W_a, _LOWER, u)
         J_a[:, :, 6:9] = -self.W_a
         idx = np.arange(n)
         blk = -self.g * np.einsum("nij,jk,nkl->nil", self.W_a, S_a, du)  # (n, 3, 2)
         for c in range(2):
-            J_a[idx, :, N_MAIN + 2 * idx + c] = blk[:, :, c]
-        J[ra] = J_a.reshape(3 * n, P)
+            J_a[idx, :, nm + 2 * idx + c] = blk[:, :, c]
         J_g = np.zeros((n, 3, P))
         J_g[:, :, 18:21] = -self.W_g
+        if self.fit_k:
+            J_a[:, :, 21:24] = -self.W_a * self.dT[:, None, None]
+            J_g[:, :, 24:27] = -self.W_g * self.dT[:, None, None]
+        J[: 3 * n] = J_a.reshape(3 * n, P)
         J[3 * n: 6 * n] = J_g.reshape(3 * n, P)
-        R = self._rotations(M_g, b_g)
+        R = self._rotations(M_g, b_g, k_g)
         WE = np.einsum("mab,mib->mai", self.W_t, self.B[self.q])  # (m, 2, 3)
         J_t = np.zeros((m, 2, P))
         dp = np.einsum("mai,mji,mjk->mak", WE, R, du[self.p])
         dq = -np.einsum("mai,mik->mak", WE, du[self.q])
         jt = np.arange(m)
         for c in range(2):
-            J_t[jt, :, N_MAIN + 2 * self.p + c] += dp[:, :, c]
-            J_t[jt, :, N_MAIN + 2 * self.q + c] += dq[:, :, c]
-        theta = np.concatenate([M_g.ravel(), b_g])
-        for c in range(12):
+            J_t[jt, :, nm + 2 * self.p + c] += dp[:, :, c]
+            J_t[jt, :, nm + 2 * self.q + c] += dq[:, :, c]
+        theta = np.concatenate([M_g.ravel(), b_g, k_g])
+        cols = [(c, 9 + c) for c in range(12)] + ([(12 + c, 24 + c) for c in range(3)] if self.fit_k else [])
+        for c, col in cols:
             h = 1e-6 * max(1.0, abs(theta[c]))
-            cols = []
+            res = []
             for sgn in (1.0, -1.0):
                 t = theta.copy()
                 t[c] += sgn * h
-                cols.append(self._turn_res(self._rotations(t[:9].reshape(3, 3), t[9:]), u))
-            J_t[:, :, 9 + c] = (cols[0] - cols[1]) / (2 * h)
+                res.append(self._turn_res(self._rotations(t[:9].reshape(3, 3), t[9:12], t[12:]), u))
+            J_t[:, :, col] = (res[0] - res[1]) / (2 * h)
         J[6 * n:] = J_t.reshape(2 * m, P)
         return J
 
     # ------------------------------------------------------------------ output
     def output_jacobian(self, x: np.ndarray) -> np.ndarray:
-        """(24, 21): d(M_a.ravel, b_a, M_g.ravel, b_g) / d(S_a lower, b_a, M_g, b_g)."""
+        """(30, nm): d(M_a.ravel, b_a, M_g.ravel, b_g, k_a, k_g) / d(main parameters)."""
         S_a = self.unpack(x)[0]
         M_a = np.linalg.inv(S_a)
-        G = np.zeros((24, N_MAIN))
+        G = np.zeros((N_OUT, self.nm))
         G[:9, :6] = -np.einsum("ij,kjl,lm->kim", M_a, _LOWER, M_a).reshape(6, 9).T
         G[9:12, 6:9] = np.eye(3)
         G[12:24, 9:21] = np.eye(12)
+        if self.fit_k:
+            G[24:30, 21:27] = np.eye(6)
         return G
 
     def covariance(self, x: np.ndarray) -> np.ndarray:
-        """(24, 24) ``(J^T J)^-1`` at ``x`` marginalised over the rest directions, output layout."""
+        """(30, 30) ``(J^T J)^-1`` at ``x`` marginalised over the rest directions, output layout."""
         J = self.jacobian(x)
-        C = np.linalg.inv(J.T @ J)[:N_MAIN, :N_MAIN]
+        C = np.linalg.inv(J.T @ J)[: self.nm, : self.nm]
         G = self.output_jacobian(x)
         return G @ C @ G.T
 
@@ -227,12 +254,20 @@ def lower_gauge(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def rotate_cov(cov: np.ndarray, Q: np.ndarray) -> np.ndarray:
-    """Covariance (24, 24) of the output after ``M_a -> Q^T M_a``, ``M_g -> Q^T M_g``."""
-    A = np.eye(24)
+    """Covariance (30, 30) of the output after ``M_a -> Q^T M_a``, ``M_g -> Q^T M_g``."""
+    A = np.eye(N_OUT)
     K = np.kron(Q.T, np.eye(3))  # (Q^T M).ravel() = K M.ravel()
     A[:9, :9] = K
     A[12:21, 12:21] = K
     return A @ cov @ A.T
+
+
+def fits_temperature(rests: Rests, setting: str) -> bool:
+    """Whether to fit ``k``: ``yes``/``no``, or ``auto`` when the rests span MIN_SPREAD_C or more."""
+    if setting != "auto":
+        return setting == "yes"
+    T = rests.temperature[np.isfinite(rests.temperature)]
+    return len(T) > 0 and float(T.max() - T.min()) >= MIN_SPREAD_C
 
 
 class JointML:
@@ -245,25 +280,28 @@ class JointML:
 
     def solve(self, observations: JointObservations, params: JointMLParams) -> JointFit:
         obs = observations
-        if len(obs.turns) < 5 or len(obs.rests) < 9:
+        turns = drop_saturated(obs.turns, params.saturation_rad_s, "joint_ml")
+        if len(turns) < 5 or len(obs.rests) < 9:
             raise SolverError(
-                f"joint_ml: {len(obs.rests)} rests and {len(obs.turns)} turns; the joint fit needs "
+                f"joint_ml: {len(obs.rests)} rests and {len(turns)} usable turns; the joint fit needs "
                 "at least 9 rests and 5 turns about all three axes"
             )
+        fit_k = fits_temperature(obs.rests, params.fit_temperature)
         S0, Q = lower_gauge(obs.accel.S)
         M_g0 = Q @ obs.gyro.M  # the gyro follows the accelerometer into the lower gauge
-        prob = JointProblem(obs.rests, obs.turns, obs.gravity, S0, obs.accel.b0, M_g0, obs.gyro.b0,
-                            obs.accel.k, obs.gyro.k)
+        prob = JointProblem(obs.rests, turns, obs.gravity, S0, obs.accel.b0, M_g0, obs.gyro.b0,
+                            obs.accel.k, obs.gyro.k, fit_k=fit_k)
         sol = least_squares(prob.residuals, prob.x0, jac=prob.jacobian, method="lm",
                             max_nfev=params.max_nfev, x_scale="jac")
         x = sol.x
-        S_a, b_a, M_g, b_g, _ = prob.unpack(x)
+        S_a, b_a, M_g, b_g, k_a, k_g, _ = prob.unpack(x)
         J = sol.jac
         JtJ = J.T @ J
         if np.linalg.cond(JtJ) > 1e14:
-            raise SolverError("joint_ml: the rests and turns do not determine all 21 constants; "
-                              "record rests over the whole sphere and turns about all three axes")
-        C = np.linalg.inv(JtJ)[:N_MAIN, :N_MAIN]
+            raise SolverError(f"joint_ml: the rests and turns do not determine all {prob.nm} constants; "
+                              "record rests over the whole sphere and turns about all three axes"
+                              + (" (or set fit_temperature = 'no')" if fit_k else ""))
+        C = np.linalg.inv(JtJ)[: prob.nm, : prob.nm]
         G = prob.output_jacobian(x)
         cov = G @ C @ G.T
         chi2 = float(sol.fun @ sol.fun)
@@ -271,7 +309,7 @@ class JointML:
         inflation = max(1.0, chi2 / dof) if dof > 0 else 1.0
         cov = cov * inflation
         M_a = np.linalg.inv(S_a)
-        R = prob._rotations(M_g, b_g)
+        R = prob._rotations(M_g, b_g, k_g)
         if params.keep_frame:
             M_a, M_g = Q.T @ M_a, Q.T @ M_g
             cov = rotate_cov(cov, Q)
@@ -284,13 +322,17 @@ class JointML:
                              "gyro_rest": float(np.sqrt(np.mean(r[3 * n: 6 * n] ** 2))),
                              "turn": float(np.sqrt(np.mean(r[6 * n:] ** 2)))},
             "turn_angle_deg_max": float(np.degrees(rotation_angle(R)).max()),
-            "rests": n, "turns": len(obs.turns),
+            "rests": n, "turns": len(turns), "turns_saturated": len(obs.turns) - len(turns),
+            "fitted_temperature_coefficients": fit_k,
         }
+        sd = np.sqrt(np.clip(np.diag(cov), 0, None))
         triads = {
             "accel": TriadFit(M_a, b_a, cov[:12, :12], {"refined_by": "joint_ml"}),
-            "gyro": TriadFit(M_g, b_g, cov[12:, 12:], {"refined_by": "joint_ml"}),
+            "gyro": TriadFit(M_g, b_g, cov[12:24, 12:24], {"refined_by": "joint_ml"}),
         }
-        return JointFit(triads, cov, details)
+        k = {"accel": np.asarray(k_a), "gyro": np.asarray(k_g)}
+        sigma_k = {"accel": sd[24:27], "gyro": sd[27:30]} if fit_k else {}
+        return JointFit(triads, cov, details, k, sigma_k)
 
 
 COMPONENTS = [JointML()]

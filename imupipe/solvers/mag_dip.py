@@ -16,7 +16,14 @@ from ..components import Params
 from ..errors import SolverError
 from ..observations import EllipsoidObservations, TriadFit
 from ._rotation import nearest_rotation
-from .ellipsoid_cholesky import MIN_COVERAGE, MIN_POSITIONS, coverage, fit_ellipsoid, jacobian
+from .ellipsoid_cholesky import (
+    MIN_COVERAGE,
+    MIN_POSITIONS,
+    coverage,
+    fit_ellipsoid,
+    jacobian,
+    shape_from_d,
+)
 
 
 class MagDipParams(Params):
@@ -29,28 +36,26 @@ class MagDipParams(Params):
 def circle_dip(unit_fields: list[np.ndarray]) -> tuple[float, list[float]]:
     """Dip (rad) from turntable circles: ``pi/2 - asin(mean R_i)`` (paper, Fig. 4c).
 
-    Each item: (k, 3) unit field vectors of one full turn of the rig base; the
-    circle's radius is the distance of the points from their best-fit plane's axis.
+    Each item: (k, 3) unit field vectors over one or more full turns of the rig base.
+    They lie where the unit sphere meets a plane ``n . x = h`` (n from the points'
+    scatter), so the radius is ``sqrt(1 - h^2)``: unlike a centroid-based radius,
+    this does not depend on how evenly the samples spread around the turn.
     """
     radii = []
     for pts in unit_fields:
-        c = pts.mean(axis=0)
-        _, _, Vt = np.linalg.svd(pts - c)
-        n = Vt[2]
-        # radius from the points' distance to the axis through c along n
-        off = pts - c
-        radii.append(float(np.sqrt(np.mean(np.sum(off**2, axis=1) - (off @ n) ** 2))))
+        _, _, Vt = np.linalg.svd(pts - pts.mean(axis=0))
+        h = float(np.mean(pts @ Vt[2]))
+        radii.append(float(np.sqrt(max(1.0 - h * h, 0.0))))
     return float(np.pi / 2 - np.arcsin(np.clip(np.mean(radii), 0, 1))), radii
 
 
 class MagDip:
     """Magnetometer solver of method A: ``solve(EllipsoidObservations) -> TriadFit``.
 
-    Needs ``obs.gravity`` (corrected unit gravity per rest). The dip is taken from
-    ``obs.dip_rad``, else from ``obs.circles`` (indices into ``obs.y`` are not
-    used: circles are given as unit field point sets through ``details``), else
-    estimated from the rests themselves: the unconstrained LS of eq. (23) with
-    ``B1 = 1`` gives a matrix whose size fixes ``B1``.
+    Needs ``obs.gravity`` (corrected unit gravity per rest). The dip is
+    ``obs.dip_rad`` when given (the stage measures it from turntable circles with
+    ``circle_dip``), else estimated from the rests themselves: the LS of eq. (23)
+    with ``B1 = 1`` gives ``R / (rho B1)``, whose size fixes ``B1``.
     """
 
     name = "ellipsoid_dip"
@@ -68,18 +73,20 @@ class MagDip:
         u = obs.y / shape.scale
         g = obs.gravity / np.linalg.norm(obs.gravity, axis=1, keepdims=True)
 
-        def solve_from(d: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
-            from .ellipsoid_cholesky import shape_from_d
-
+        def solve_from(d: np.ndarray, r_fixed: np.ndarray | None = None):
+            """(Mn, b, info) for ellipsoid vector ``d``; ``r_fixed`` replaces the LS of eq. (23)."""
             _, b, L, _ = shape_from_d(d)
             B_hat = (u - b) @ L  # rows: L^T (m - b), analogue of eq. (17)
             V = np.einsum("ki,kj->kij", g, B_hat).reshape(len(u), 9)  # Eq. (22): rows m_k
+            target = -np.sin(obs.dip_rad) if obs.dip_rad is not None else 1.0
+            r, *_ = np.linalg.lstsq(V, np.full(len(u), target), rcond=None)  # Eq. (23)
+            res = np.full(len(u), target) - V @ r
+            r_cov = float(res @ res) / max(len(u) - 9, 1) * np.linalg.pinv(V.T @ V)
+            r = r if r_fixed is None else r_fixed
             if obs.dip_rad is not None:
-                B1, dip_source = -np.sin(obs.dip_rad), "given"
-                r, *_ = np.linalg.lstsq(V, np.full(len(u), B1), rcond=None)  # Eq. (23)
+                B1, dip_source = target, "given"
                 A = r.reshape(3, 3)
             else:
-                r, *_ = np.linalg.lstsq(V, np.ones(len(u)), rcond=None)
                 A1 = r.reshape(3, 3)
                 # A1 = R / (rho B1): its singular values give 1 / (rho |B1|), sign from det
                 sv = np.linalg.svd(A1, compute_uv=False).mean()
@@ -91,7 +98,7 @@ class MagDip:
             beta = len(u) / np.sum(np.linalg.norm(B_hat, axis=1))  # Eq. (24)
             Mn = beta * R @ L.T  # Eq. (25)
             return Mn, b * shape.scale, {"B1": float(B1), "dip_source": dip_source,
-                                         "beta": float(beta)}
+                                         "beta": float(beta), "r": r, "r_cov": r_cov}
 
         Mn, b, info = solve_from(shape.d)
         unit = obs.magnitude / shape.scale
@@ -102,6 +109,13 @@ class MagDip:
             return np.concatenate([(unit * m).ravel(), bb])
 
         cov = (J := jacobian(pack, shape.d)) @ shape.d_cov @ J.T
+        r_hat, r_cov = info.pop("r"), info.pop("r_cov")
+
+        def pack_r(r: np.ndarray) -> np.ndarray:
+            m, bb, _ = solve_from(shape.d, r)
+            return np.concatenate([(unit * m).ravel(), bb])
+
+        cov = cov + (J_r := jacobian(pack_r, r_hat)) @ r_cov @ J_r.T  # the rotation LS (23) too
         corrected = (obs.y - b) @ M.T / obs.magnitude
         dots = np.sum(corrected * g, axis=1)
         details = {

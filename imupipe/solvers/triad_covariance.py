@@ -13,16 +13,19 @@ from __future__ import annotations
 import numpy as np
 
 
-def shape_basis(lower: bool) -> np.ndarray:
-    """(6, 3, 3) basis of the free entries of ``S``: lower-triangular or symmetric."""
+def shape_basis(form: str = "lower") -> np.ndarray:
+    """(p, 3, 3) basis of the free entries of ``S``: ``lower``/``upper`` triangular or
+    ``symmetric`` (p = 6), or ``diagonal`` (p = 3)."""
+    if form == "diagonal":
+        return np.array([np.diag(e) for e in np.eye(3)])
     basis = []
     for j in range(3):
         for k in range(j + 1):
             E = np.zeros((3, 3))
             E[j, k] = 1.0
-            if not lower:
+            if form == "symmetric":
                 E[k, j] = 1.0
-            basis.append(E)
+            basis.append(E.T if form == "upper" else E)
     return np.array(basis)
 
 
@@ -34,7 +37,7 @@ def gauss_newton_cov(J: np.ndarray, chi2: float, dof: int) -> tuple[np.ndarray, 
 
 
 def ellipsoid_uncertainty(y: np.ndarray, cov: np.ndarray, M: np.ndarray, b: np.ndarray,
-                          g: float, lower: bool = True) -> dict:
+                          g: float, form: str = "lower") -> dict:
     """Covariance of an ellipsoid fit from the radial residuals ``|M (y - b)| - g``.
 
     ``y`` (n, 3) rest means, ``cov`` (n, 3, 3) their covariances (sensor units^2),
@@ -48,18 +51,19 @@ def ellipsoid_uncertainty(y: np.ndarray, cov: np.ndarray, M: np.ndarray, b: np.n
     sigma = np.sqrt(np.einsum("ni,ij,njk,lk,nl->n", nrm, M, cov, M, nrm))
     sigma = np.maximum(sigma, 1e-300)
     nM = nrm @ M  # (n, 3): d|x|/dy
-    E = shape_basis(lower)
+    E = shape_basis(form)
     # d|x|/dS_k = -n^T M E_k x (x = S^-1 (y - b)); d|x|/db = -n^T M.
     J_S = -np.einsum("ni,kij,nj->nk", nM, E, x)
     J = np.column_stack([J_S, -nM]) / sigma[:, None]
     res = (r - g) / sigma
     chi2 = float(res @ res)
-    dof = len(y) - 9
+    p = len(E)
+    dof = len(y) - p - 3
     C9, inflation = gauss_newton_cov(J, chi2, dof)
     # dM/dS_k = -M E_k M.
-    G = np.zeros((12, 9))
-    G[:9, :6] = -np.einsum("ij,kjl,lm->kim", M, E, M).reshape(6, 9).T
-    G[9:, 6:] = np.eye(3)
+    G = np.zeros((12, p + 3))
+    G[:9, :p] = -np.einsum("ij,kjl,lm->kim", M, E, M).reshape(p, 9).T
+    G[9:, p:] = np.eye(3)
     return {
         "cov12": G @ C9 @ G.T,
         "rms_residual": float(np.sqrt(np.mean((r - g) ** 2))),

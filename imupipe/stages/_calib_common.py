@@ -10,7 +10,7 @@ import pyarrow as pa
 from .. import schemas
 from ..errors import SolverError
 from ..models import TriadCalibration, triads_from_table
-from ..observations import Rests
+from ..observations import Rests, TriadFit
 
 
 def triad_from(inputs: Mapping[str, pa.Table], port: str, sensor: str) -> TriadCalibration | None:
@@ -97,3 +97,11 @@ def rest_at_time(rests: Rests, t_s: float) -> int:
 def model_T(T: np.ndarray) -> np.ndarray:
     """Temperatures for ``apply``/``predict``: unknown (NaN) is taken as 25 degC (no thermal term)."""
     return np.where(np.isfinite(T), T, 25.0)
+
+
+def add_thermal_variance(fit: TriadFit, T: np.ndarray, sigma_k: np.ndarray) -> TriadFit:
+    """``fit`` with the b0 variance the k uncertainty adds: b0 sits ``mean(T) - 25`` away
+    from the rests' temperatures, so an error in k moves it by that much."""
+    cov = np.array(fit.cov, dtype=float)
+    cov[9:, 9:] += np.diag((np.nanmean(dT(T)) * np.asarray(sigma_k)) ** 2) if len(T) else 0.0
+    return TriadFit(fit.M, fit.b0, cov, fit.details)

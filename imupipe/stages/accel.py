@@ -19,7 +19,15 @@ from pydantic import Field
 from ..components import BoundSolver, Params, Stage
 from ..models import triads_to_table
 from ..observations import EllipsoidObservations, Rests
-from ._calib_common import dT, model_T, noise_details, residual_table, rest_at_time, thermal_k
+from ._calib_common import (
+    add_thermal_variance,
+    dT,
+    model_T,
+    noise_details,
+    residual_table,
+    rest_at_time,
+    thermal_k,
+)
 
 G_STANDARD = 9.80665
 
@@ -75,6 +83,7 @@ def calibrate_accel(inputs: Mapping[str, pa.Table], params: AccelParams, solver:
     obs = EllipsoidObservations("accel", y, rests.cov_of_mean("accel"), rests.temperature,
                                 params.g_m_s2, y_up, x_up)
     fit = solver.solve(obs)
+    fit = add_thermal_variance(fit, rests.temperature, sigma_k)
     cal = fit.to_calibration("accel", solver.solver.name, k=k, sigma_k=sigma_k, extra={
         "reference_rests": {"y_up": y_up, "x_up": x_up, "how": how},
         "noise": noise_details(rests, "accel"), "g_m_s2": params.g_m_s2,

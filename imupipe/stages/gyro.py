@@ -73,6 +73,7 @@ def calibrate_gyro(inputs: Mapping[str, pa.Table], params: GyroParams, solver: B
     b0 = corrected.mean(axis=0)
     sd_b0 = corrected.std(axis=0, ddof=1) / np.sqrt(len(corrected)) if len(corrected) > 1 \
         else np.full(3, np.nan)
+    sd_b0 = np.sqrt(sd_b0**2 + (np.nanmean(dT(rests.temperature)) * sigma_k) ** 2)
     cal = fit.to_calibration("gyro", solver.solver.name, k=k, sigma_k=sigma_k, extra={
         "sigma_b0": sd_b0.tolist(), "noise": noise_details(rests, "gyro"),
         "roll_turn": roll,

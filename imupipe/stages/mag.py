@@ -19,7 +19,15 @@ from ..components import BoundSolver, Params, Stage
 from ..models import triads_to_table
 from ..observations import EllipsoidObservations, Rests
 from ..solvers.mag_dip import circle_dip
-from ._calib_common import dT, model_T, need_triad, noise_details, residual_table, thermal_k
+from ._calib_common import (
+    add_thermal_variance,
+    dT,
+    model_T,
+    need_triad,
+    noise_details,
+    residual_table,
+    thermal_k,
+)
 from .segment import xyz
 
 
@@ -66,6 +74,7 @@ def calibrate_mag(inputs: Mapping[str, pa.Table], params: MagParams, solver: Bou
         dip, radii = circle_dip(circles)
         fit = run(dip)
         dip_info = {"dip_source": "turntable circles", "circle_radii": radii}
+    fit = add_thermal_variance(fit, rests.temperature, sigma_k)
     cal = fit.to_calibration("mag", solver.solver.name, k=k, sigma_k=sigma_k, extra={
         **dip_info, "noise": noise_details(rests, "mag"),
         "field_T": params.field_T, "normalised": params.field_T is None,

@@ -44,16 +44,20 @@ def start_triads(tables: list[pa.Table]) -> tuple[TriadCalibration, TriadCalibra
 
 
 def refined_triads(fit: JointFit, start: Mapping[str, TriadCalibration], solver: str) -> list[TriadCalibration]:
-    """Calibration rows from a joint fit; temperature coefficients are kept from the start."""
+    """Calibration rows from a joint fit; k is the fitted one, else the start's."""
     rows = []
     for sensor in ("accel", "gyro"):
         tf = fit.triads[sensor]
         extra = {"start_solver": start[sensor].solver, "joint": fit.details}
         if sensor == "accel":
             extra["joint_covariance"] = np.asarray(fit.cov).tolist()
-            extra["joint_covariance_order"] = "M_accel row-major (9), b0_accel (3), M_gyro (9), b0_gyro (3)"
-        sigma_k = start[sensor].details.get("sigma_k")
-        rows.append(tf.to_calibration(sensor, solver, k=start[sensor].k,
+            extra["joint_covariance_order"] = ("M_accel row-major (9), b0_accel (3), M_gyro (9), "
+                                               "b0_gyro (3), k_accel (3), k_gyro (3)")
+        if sensor in fit.sigma_k:
+            k, sigma_k = fit.k[sensor], fit.sigma_k[sensor]
+        else:
+            k, sigma_k = start[sensor].k, start[sensor].details.get("sigma_k")
+        rows.append(tf.to_calibration(sensor, solver, k=np.asarray(k),
                                       sigma_k=None if sigma_k is None else np.asarray(sigma_k),
                                       extra=extra))
     return rows

@@ -9,7 +9,9 @@ downstream stages take ``k`` from them; they are not a calibration to export.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
+from typing import Literal
 
 import numpy as np
 import pyarrow as pa
@@ -26,11 +28,14 @@ from .segment import xyz
 class ThermalParams(Params):
     """``average_s``: averaging interval (paper: 1 s); ``warmup_window_s``: [start, end]
     in s since the session start, or None for the longest rest; ``sensors``: the
-    triads to fit (those wired and present)."""
+    triads to fit (those wired and present); ``on_insufficient``: when the warm-up cannot
+    identify k (too short or too little heating), raise (``error``) or warn and pass
+    ``k = 0`` on (``zero``)."""
 
     average_s: float = 1.0
     warmup_window_s: tuple[float, float] | None = None
     sensors: tuple[str, ...] = ("accel", "gyro", "mag")
+    on_insufficient: Literal["error", "zero"] = "error"
     solver: str = "thermal_kalman"
     solver_params: dict = Field(default_factory=dict)
 
@@ -83,19 +88,32 @@ def fit_thermal(inputs: Mapping[str, pa.Table], params: ThermalParams, solver: B
         tm, vm = bin_average(ts[sel], v[sel], params.average_s)
         Tm = np.interp(tm, (tt - t0) * 1e-9, TT)
         obs = ThermalObservations(sensor, tm, Tm, vm, average_sigma(vm))
-        fit = solver.solve(obs)
+        try:
+            fit = solver.solve(obs)
+        except SolverError as exc:
+            if params.on_insufficient == "error":
+                raise
+            warnings.warn(f"{exc}; continuing with k = 0", stacklevel=2)
+            triads.append(TriadFit(np.eye(3), np.zeros(3), np.zeros((12, 12))).to_calibration(
+                sensor, solver.solver.name, extra={"k_fitted": False, "reason": str(exc),
+                                                   "role": "thermal coefficients only (M = I)"}))
+            continue
         sd = np.sqrt(np.clip(np.diag(fit.cov), 0, None))
         keep_b0 = sensor == "gyro"  # accel/mag: b0 holds the projection of g or B (paper)
         details = {**dict(fit.details), "sigma_k": sd[3:].tolist(),
                    "sigma_b0": (sd[:3] if keep_b0 else np.zeros(3)).tolist(),
                    "covariance": np.asarray(fit.cov).tolist(), "covariance_order": "b0 (3), k (3)",
-                   "warmup_window_s": [a, b], "role": "thermal coefficients only (M = I)"}
+                   "warmup_window_s": [a, b], "k_fitted": True,
+                   "role": "thermal coefficients only (M = I)"}
         triads.append(TriadFit(np.eye(3), fit.b0 if keep_b0 else np.zeros(3), np.zeros((12, 12)))
                       .to_calibration(sensor, solver.solver.name, k=fit.k, sigma_k=sd[3:],
                                       extra=details))
         pred = fit.b0 + np.outer(Tm - 25.0, fit.k)
         residuals.append(residual_table("fit_thermal", sensor, "average", tm, Tm, vm, pred,
                                         np.tile(obs.sigma, (len(tm), 1))))
+    if not residuals:
+        residuals.append(residual_table("fit_thermal", "gyro", "average", np.zeros(0), np.zeros(0),
+                                        np.zeros((0, 3)), np.zeros((0, 3)), None))
     if not triads:
         raise SolverError("fit_thermal: no triad wired; connect accel, gyro and/or mag samples")
     return {"calibration": triads_to_table(triads), "residuals": concat_residuals(residuals)}

@@ -21,7 +21,7 @@ from .. import schemas
 from ..components import BoundSolver, Params, Stage
 from ..models import TriadCalibration
 from ..observations import Rests, Turns
-from ..solvers._rotation import integrate_rotations
+from ..solvers._rotation import carry_gravity, integrate_rotations
 from ..solvers.gyro_rodrigues import angle_error, rodrigues_error
 from ._calib_common import model_T, need_triad
 
@@ -38,7 +38,8 @@ class ValidateParams(Params):
 
 def turn_errors(rests: Rests, turns: Turns, acc: TriadCalibration | None,
                 gyr: TriadCalibration | None) -> tuple[np.ndarray, ...]:
-    """Per turn: Gibbs vectors Y (m, 3), |E| (m,), angle error (m,) rad, tilt (m,) rad."""
+    """Per turn: Gibbs vectors Y (m, 3), |E| (m,), angle error (m,) rad, tilt (m,) rad,
+    gravity error (m,) rad (gravity before carried by the gyro vs gravity after)."""
     a = rests.need("accel")
     g = acc.apply(a, model_T(rests.temperature)) if acc is not None else a
     g = g / np.linalg.norm(g, axis=1, keepdims=True)
@@ -53,7 +54,9 @@ def turn_errors(rests: Rests, turns: Turns, acc: TriadCalibration | None,
     E = np.linalg.norm(rodrigues_error(g0, g1, Y), axis=1)
     eps = angle_error(g0, g1, Y)
     tilt = np.arccos(np.clip(np.sum(g0 * g1, axis=1), -1, 1))
-    return Y, E, eps, tilt
+    carried = carry_gravity(q, g0)
+    grav = np.arctan2(np.linalg.norm(np.cross(carried, g1), axis=1), np.sum(carried * g1, axis=1))
+    return Y, E, eps, tilt, grav
 
 
 def validate(inputs: Mapping[str, pa.Table], params: ValidateParams, solver: BoundSolver | None):
@@ -61,8 +64,8 @@ def validate(inputs: Mapping[str, pa.Table], params: ValidateParams, solver: Bou
     turns = Turns.from_tables(inputs["turns"], inputs["gyro"], rests.t0_ns)
     acc = need_triad(inputs, "accel", "accel", "validate_turns")
     gyr = need_triad(inputs, "gyro_cal", "gyro", "validate_turns")
-    _, E0, eps0, _ = turn_errors(rests, turns, None, None)
-    Y1, E1, eps1, tilt = turn_errors(rests, turns, acc, gyr)
+    _, E0, eps0, _, grav0 = turn_errors(rests, turns, None, None)
+    Y1, E1, eps1, tilt, grav1 = turn_errors(rests, turns, acc, gyr)
     angle = np.degrees(2 * np.arctan(np.linalg.norm(Y1, axis=1)))
     informative = (np.degrees(tilt) >= params.min_tilt_deg) & (angle <= params.max_turn_deg)
     eps0_deg = np.where(informative, np.degrees(eps0), np.nan)
@@ -78,6 +81,10 @@ def validate(inputs: Mapping[str, pa.Table], params: ValidateParams, solver: Bou
         "tolerance_deg": params.tolerance_deg,
         "angle_error_rms_before_deg": rms(eps0_deg), "angle_error_rms_after_deg": rms(eps1_deg),
         "angle_error_max_after_deg": float(np.nanmax(np.abs(eps1_deg))) if n_inf else float("nan"),
+        "gravity_error_rms_before_deg": float(np.degrees(np.sqrt(np.mean(grav0**2)))) if len(turns)
+        else float("nan"),
+        "gravity_error_rms_after_deg": float(np.degrees(np.sqrt(np.mean(grav1**2)))) if len(turns)
+        else float("nan"),
         "passed": bool(n_inf and accepted.sum() == n_inf), "in_sample": True,
     }
     table = pa.table({
@@ -87,6 +94,7 @@ def validate(inputs: Mapping[str, pa.Table], params: ValidateParams, solver: Bou
         "angle_deg": angle, "tilt_deg": np.degrees(tilt),
         "rodrigues_error_before": E0, "rodrigues_error_after": E1,
         "angle_error_before_deg": eps0_deg, "angle_error_after_deg": eps1_deg,
+        "gravity_error_before_deg": np.degrees(grav0), "gravity_error_after_deg": np.degrees(grav1),
         "informative": informative, "accepted": accepted,
     })
     return {"report": schemas.stamp(table, "validation", {"imupipe.summary": json.dumps(summary)})}

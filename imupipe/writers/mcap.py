@@ -68,34 +68,35 @@ def write_mcap(path: Path | str, recording: Recording, *, compression: str = "zs
     """
     if compression not in COMPRESSION:
         raise ValueError(f"compression must be one of {sorted(COMPRESSION)}, got {compression!r}")
-    topics = []  # (topic, kind, t_ns (n,), payload rows (n, size) uint8)
+    topics = []  # (topic, kind, t_ns (n,), bytes per message, all its messages as one bytes)
     for device, streams in recording.devices.items():
         for kind, (t, block) in _blocks(streams).items():
             sec, nanosec = _split_ns(t, f"{recording.source} [{device}]")
             rows = cdr.encode(kind, sec, nanosec, device, block)
-            topics.append((f"/{device}/{TOPIC_SUFFIX[kind]}", kind, t, rows))
+            topic = f"/{device}/{TOPIC_SUFFIX[kind]}"
+            topics.append((topic, kind, t, rows.shape[1], rows.tobytes()))
+            del rows
 
     # interleave by time; ties keep topic order, as a recorder's queue would
-    t_all = np.concatenate([t for _, _, t, _ in topics]) if topics else np.empty(0, np.int64)
-    src = np.concatenate([np.full(len(t), k) for k, (_, _, t, _) in enumerate(topics)]
-                         ) if topics else np.empty(0, np.int64)
+    t_all = np.concatenate([np.empty(0, np.int64)] + [t for _, _, t, _, _ in topics])
+    src = np.concatenate([np.empty(0, np.int64)] +
+                         [np.full(len(t), k) for k, (_, _, t, _, _) in enumerate(topics)])
+    seq = np.concatenate([np.empty(0, np.int64)] + [np.arange(len(t)) for _, _, t, _, _ in topics])
     order = np.argsort(t_all, kind="stable")
-    seq = np.concatenate([np.arange(len(t)) for _, _, t, _ in topics]) if topics else src
 
     with atomic_path(Path(path)) as tmp, open(tmp, "wb") as f:
         writer = Writer(f, chunk_size=chunk_size, compression=COMPRESSION[compression])
         writer.start(profile="ros2", library=f"imupipe {__version__}")
-        schema_ids = {kind: writer.register_schema(cdr.KIND_SCHEMA[kind], "ros2msg", text)
-                      for kind, text in SCHEMA_TEXT.items()}
-        channels, blobs, sizes = [], [], []
-        for topic, kind, _, rows in topics:
-            channels.append(writer.register_channel(topic, "cdr", schema_ids[kind]))
-            blobs.append(rows.tobytes())
-            sizes.append(rows.shape[1])
+        schema_ids = {}
+        for kind in dict.fromkeys(kind for _, kind, _, _, _ in topics):
+            schema_ids[kind] = writer.register_schema(cdr.KIND_SCHEMA[kind], "ros2msg",
+                                                      SCHEMA_TEXT[kind])
+        channels = [writer.register_channel(topic, "cdr", schema_ids[kind])
+                    for topic, kind, _, _, _ in topics]
         add = writer.add_message
         for k, i, t in zip(src[order].tolist(), seq[order].tolist(), t_all[order].tolist()):
-            size = sizes[k]
-            add(channels[k], t, blobs[k][i * size:(i + 1) * size], t, i)
+            size, blob = topics[k][3], topics[k][4]
+            add(channels[k], t, blob[i * size:(i + 1) * size], t, i)
         writer.finish()
 
 

@@ -1,4 +1,4 @@
-"""Fixtures of the pipeline tests: toy sessions, toy pipelines, a registry that counts stage runs."""
+"""Fixtures of the pipeline tests: toy sessions, toy pipelines, a registry counting stage runs."""
 
 from __future__ import annotations
 
@@ -16,11 +16,7 @@ import pipeline_toys
 import imupipe.exporters
 import imupipe.pipeline.executors
 from imupipe.hookspecs import hookimpl
-from imupipe.pipeline.api import RegistrySpec
 from imupipe.plugins import make_registry
-
-TOY_SPEC = RegistrySpec(("imupipe.exporters", "imupipe.pipeline.executors", "pipeline_toys"),
-                        entry_points=False)
 
 
 class Counter:
@@ -48,11 +44,19 @@ class Counter:
 @pytest.fixture
 def toy_registry():
     """``toy_registry(**variant) -> (registry, counter)``: a fresh registry per call."""
+
     def make(*extra, **variant):
         counter = Counter()
-        registry = make_registry([imupipe.exporters, imupipe.pipeline.executors,
-                                  pipeline_toys.ToyPlugin(**variant), counter, *extra],
-                                 entry_points_too=False)
+        registry = make_registry(
+            [
+                imupipe.exporters,
+                imupipe.pipeline.executors,
+                pipeline_toys.ToyPlugin(**variant),
+                counter,
+                *extra,
+            ],
+            entry_points_too=False,
+        )
         return registry, counter
 
     return make

@@ -1,4 +1,4 @@
-"""Fixture plugin: just the built-in canonical CSV and MCAP readers (importable by batch workers)."""
+"""Fixture plugin: just the built-in canonical CSV and MCAP readers (for batch workers)."""
 
 from __future__ import annotations
 

@@ -10,6 +10,7 @@ of ``accel_x..z``, ``gyro_x..z``, ``mag_x..z``, ``temperature`` (SI, degC).
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Literal
 
@@ -23,8 +24,13 @@ from imupipe.errors import ReaderError
 from imupipe.hookspecs import hookimpl
 from imupipe.io import read_arrow, write_arrow
 from imupipe.models import TriadCalibration, triads_to_table
+from imupipe.pipeline.api import RegistrySpec
 
 TRIADS = ("accel", "gyro", "mag")
+# what a batch worker registers: this module, the built-in exporters and executors only
+TOY_SPEC = RegistrySpec(
+    ("imupipe.exporters", "imupipe.pipeline.executors", "pipeline_toys"), entry_points=False
+)
 SUFFIX = ".arrowsession"
 
 
@@ -51,12 +57,18 @@ class ArrowSessionReader:
                 streams[s] = schemas.stamp(pa.table(cols), s)
         if "temperature" in table.column_names:
             streams["temperature"] = schemas.stamp(
-                pa.table({"t_ns": t, "temperature": table.column("temperature")}), "temperature")
+                pa.table({"t_ns": t, "temperature": table.column("temperature")}), "temperature"
+            )
         return Recording(str(path), {"imu": streams})
 
 
-def write_session(path: Path, streams=("accel", "gyro", "mag", "temperature"), seed: int = 0,
-                  n: int = 200, bias: float = 0.1) -> Path:
+def write_session(
+    path: Path,
+    streams=("accel", "gyro", "mag", "temperature"),
+    seed: int = 0,
+    n: int = 200,
+    bias: float = 0.1,
+) -> Path:
     """A toy session: constant truth + ``bias`` + seeded noise on every triad."""
     rng = np.random.default_rng(seed)
     cols = {"t_ns": np.arange(n, dtype=np.int64) * 10_000_000}
@@ -64,7 +76,9 @@ def write_session(path: Path, streams=("accel", "gyro", "mag", "temperature"), s
     for s in TRIADS:
         if s in streams:
             scale = 1e-6 if s == "mag" else 1.0
-            values = np.asarray(truth[s]) + bias * scale + 0.01 * scale * rng.standard_normal((n, 3))
+            values = (
+                np.asarray(truth[s]) + bias * scale + 0.01 * scale * rng.standard_normal((n, 3))
+            )
             for i, a in enumerate("xyz"):
                 cols[f"{s}_{a}"] = values[:, i]
     if "temperature" in streams:
@@ -122,8 +136,14 @@ def make_scale(version: str = "1", offset: float = 0.0) -> Stage:
         out = pa.table({"t_ns": t.column("t_ns"), **{a: xyz[:, i] for i, a in enumerate("xyz")}})
         return {"samples": schemas.stamp(out, "accel")}
 
-    return Stage("toy_scale", version, scale, inputs={"samples": "accel"}, outputs={"samples": "accel"},
-                 params=ScaleParams)
+    return Stage(
+        "toy_scale",
+        version,
+        scale,
+        inputs={"samples": "accel"},
+        outputs={"samples": "accel"},
+        params=ScaleParams,
+    )
 
 
 def make_bias(sensor: str, version: str = "1") -> Stage:
@@ -132,29 +152,60 @@ def make_bias(sensor: str, version: str = "1") -> Stage:
         if sensor == "accel" and params.gravity == "z":
             mean = mean - np.array([0.0, 0.0, 9.81])
         details = {"n": inputs["samples"].num_rows, "had_temperature": "temperature" in inputs}
-        triad = TriadCalibration(sensor, np.eye(3), mean, np.zeros(3), solver=solver.solver.name,
-                                 details=details)
+        triad = TriadCalibration(
+            sensor, np.eye(3), mean, np.zeros(3), solver=solver.solver.name, details=details
+        )
         return {"calibration": triads_to_table([triad])}
 
-    return Stage(f"toy_bias_{sensor}", version, bias,
-                 inputs={"samples": sensor, "temperature": "temperature"},
-                 outputs={"calibration": "calibration"}, params=BiasParams,
-                 optional_inputs=frozenset({"temperature"}), solver_kind="toy")
+    return Stage(
+        f"toy_bias_{sensor}",
+        version,
+        bias,
+        inputs={"samples": sensor, "temperature": "temperature"},
+        outputs={"calibration": "calibration"},
+        params=BiasParams,
+        optional_inputs=frozenset({"temperature"}),
+        solver_kind="toy",
+    )
 
 
 def _broken(inputs, params, solver):
     return {"wrong": inputs["samples"]}
 
 
-BROKEN = Stage("toy_broken", "1", _broken, inputs={"samples": "accel"}, outputs={"samples": "accel"})
+def _crash(inputs, params, solver):
+    """Kills its process on a 13-sample session: what a segfaulting extension would do."""
+    if inputs["samples"].num_rows == CRASH_ROWS:
+        os._exit(3)
+    return {"samples": inputs["samples"]}
+
+
+CRASH_ROWS = 13
+CRASH = Stage("toy_crash", "1", _crash, inputs={"samples": "accel"}, outputs={"samples": "accel"})
+
+BROKEN = Stage(
+    "toy_broken", "1", _broken, inputs={"samples": "accel"}, outputs={"samples": "accel"}
+)
 
 
 class ToyPlugin:
     """A variant of the fixture plugin: ``versions``/``offset`` change what the stages are."""
 
-    def __init__(self, scale_version: str = "1", scale_offset: float = 0.0, bias_version: str = "1"):
-        self.stages = [make_scale(scale_version, scale_offset), BROKEN,
-                       *(make_bias(s, bias_version) for s in TRIADS)]
+    def __init__(
+        self,
+        scale_version: str = "1",
+        scale_offset: float = 0.0,
+        bias_version: str = "1",
+        solver_version: str = "1",
+    ):
+        self.solver = ToyMeanSolver()
+        self.solver.version = solver_version
+        self.stages = [
+            make_scale(scale_version, scale_offset),
+            BROKEN,
+            CRASH,
+            *(make_bias(s, bias_version) for s in TRIADS),
+        ]
 
     @hookimpl
     def imupipe_register_readers(self, register):
@@ -167,7 +218,7 @@ class ToyPlugin:
 
     @hookimpl
     def imupipe_register_solvers(self, register):
-        register(ToyMeanSolver())
+        register(self.solver)
         register(OtherKindSolver())
 
 

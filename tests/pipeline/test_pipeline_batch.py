@@ -1,12 +1,11 @@
-"""``imupipe batch``: input expansion, local process pool and a real Dask cluster, failures reported."""
+"""``imupipe batch``: input expansion, local process pool and a real Dask cluster, failures."""
 
 from __future__ import annotations
 
 import json
 
 import pytest
-from conftest import TOY_SPEC
-from pipeline_toys import write_session
+from pipeline_toys import TOY_SPEC, write_session
 
 from imupipe import cli
 from imupipe.errors import ImupipeError
@@ -37,17 +36,28 @@ def test_expand_inputs_dirs_globs_manifests(tmp_path, sessions, toy_registry):
     write_session(out / "x.arrowsession")  # nothing is taken from the output directory
     found = expand_inputs([str(data)], registry, out)
     assert found == sorted([bad.resolve(), *(g.resolve() for g in good), manifest.resolve()])
-    assert expand_inputs([str(data / "good*.arrowsession")], registry) == [g.resolve() for g in good]
+    assert expand_inputs([str(data / "good*.arrowsession")], registry) == [
+        g.resolve() for g in good
+    ]
     with pytest.raises(ImupipeError, match="no such file, directory or matching glob"):
         expand_inputs([str(data / "nothing*.mcap")], registry)
 
 
 @pytest.mark.parametrize("jobs", [1, 2])
-def test_local_batch_reports_failures_and_keeps_going(tmp_path, sessions, toy_pipeline, capsys, jobs):
+def test_local_batch_reports_failures_and_keeps_going(
+    tmp_path, sessions, toy_pipeline, capsys, jobs
+):
     data, good, bad = sessions
     out = tmp_path / "out"
-    failures = batch([str(data / "*.arrowsession")], toy_pipeline, out, "local", jobs, quiet=True,
-                     plugins=TOY_SPEC)
+    failures = batch(
+        [str(data / "*.arrowsession")],
+        toy_pipeline,
+        out,
+        "local",
+        jobs,
+        quiet=True,
+        plugins=TOY_SPEC,
+    )
     assert [f.session for f in failures] == [str(bad.resolve())]
     assert "not an Arrow IPC session" in failures[0].detail
     for g in good:
@@ -60,7 +70,9 @@ def test_local_batch_reports_failures_and_keeps_going(tmp_path, sessions, toy_pi
     assert "failed" in bad_line and "not an Arrow IPC session" in bad_line
 
 
-def test_cli_batch_exits_2_when_a_session_fails(tmp_path, sessions, toy_pipeline, monkeypatch, capsys):
+def test_cli_batch_exits_2_when_a_session_fails(
+    tmp_path, sessions, toy_pipeline, monkeypatch, capsys
+):
     data, _, bad = sessions
     monkeypatch.setattr(api, "DEFAULT_SPEC", TOY_SPEC)
     out = tmp_path / "out"
@@ -82,22 +94,81 @@ def test_dask_batch_on_a_real_local_cluster(tmp_path, sessions, toy_pipeline, mo
     data, good, bad = sessions
     out = tmp_path / "out"
     # jobs=2: a LocalCluster of 2 worker processes, 1 thread each
-    failures = batch([str(data / "*.arrowsession")], toy_pipeline, out, "dask", 2, quiet=True,
-                     plugins=TOY_SPEC)
+    failures = batch(
+        [str(data / "*.arrowsession")], toy_pipeline, out, "dask", 2, quiet=True, plugins=TOY_SPEC
+    )
     assert [f.session for f in failures] == [str(bad.resolve())]
     assert "not an Arrow IPC session" in failures[0].detail
     assert all((out / g.stem / "calibration.json").is_file() for g in good)
     assert "3 ok, 1 failed" in capsys.readouterr().out
 
 
-def test_dask_batch_uses_the_scheduler_named_in_the_environment(tmp_path, sessions, toy_pipeline, monkeypatch):
+def test_dask_batch_uses_the_scheduler_named_in_the_environment(
+    tmp_path, sessions, toy_pipeline, monkeypatch
+):
     distributed = pytest.importorskip("distributed")
     _, good, _ = sessions
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) \
-            as cluster:
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster:
         monkeypatch.setenv("IMUPIPE_DASK_SCHEDULER", cluster.scheduler_address)
-        failures = batch([str(g) for g in good[:2]], toy_pipeline, tmp_path / "out", "dask", 2, quiet=True,
-                         plugins=TOY_SPEC)
+        failures = batch(
+            [str(g) for g in good[:2]],
+            toy_pipeline,
+            tmp_path / "out",
+            "dask",
+            2,
+            quiet=True,
+            plugins=TOY_SPEC,
+        )
         assert failures == []
         assert "run_job" in cluster.scheduler.task_prefixes  # the jobs went to this cluster
     assert all((tmp_path / "out" / g.stem / "calibration.json").is_file() for g in good[:2])
+
+
+def test_expand_inputs_skips_files_no_reader_claims(tmp_path, toy_registry, caplog):
+    from imupipe.hookspecs import hookimpl
+
+    class TomlSessions:
+        name = "toml_sessions"
+        suffixes = (".toml",)
+
+        def sniff(self, path, head):
+            return head.startswith(b"[session]")
+
+        def read(self, path):
+            raise NotImplementedError
+
+    class Plugin:
+        @hookimpl
+        def imupipe_register_readers(self, register):
+            register(TomlSessions())
+
+    registry, _ = toy_registry(Plugin())
+    (tmp_path / "pipeline.toml").write_text('name = "not a session"\n')
+    (tmp_path / "lab.toml").write_text("[session]\n")
+    good = write_session(tmp_path / "a.arrowsession")
+    with caplog.at_level("WARNING", logger="imupipe.pipeline"):
+        found = expand_inputs([str(tmp_path)], registry)
+    assert found == [good.resolve(), (tmp_path / "lab.toml").resolve()]
+    assert "pipeline.toml: skipped: no reader accepts it (toml_sessions)" in caplog.text
+
+
+def test_local_batch_survives_a_worker_that_dies(tmp_path, toy_pipeline):
+    from pipeline_toys import CRASH_ROWS
+
+    data = tmp_path / "data"
+    data.mkdir()
+    good = [write_session(data / f"g{i}.arrowsession", seed=i) for i in range(2)]
+    crash = write_session(data / "crash.arrowsession", n=CRASH_ROWS)
+    text = toy_pipeline.read_text().replace(
+        "[export]",
+        '[stages.c]\nuses = "toy_crash"\ninputs = { samples = "session.accel" }\n\n[export]',
+    )
+    toy_pipeline.write_text(text)
+    failures = batch(
+        [str(data)], toy_pipeline, tmp_path / "out", "local", 2, quiet=True, plugins=TOY_SPEC
+    )
+    assert [f.session for f in failures] == [str(crash.resolve())]
+    assert failures[0].detail.startswith("worker died")
+    assert all((tmp_path / "out" / g.stem / "calibration.json").is_file() for g in good)

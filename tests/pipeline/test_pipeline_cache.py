@@ -15,7 +15,9 @@ def _run(registry, session, pipeline, out):
     return run_sessions([session], pipeline, out, quiet=True, registry=registry)
 
 
-def test_second_run_of_unchanged_pipeline_executes_nothing(tmp_path, toy_registry, toy_pipeline, session):
+def test_second_run_of_unchanged_pipeline_executes_nothing(
+    tmp_path, toy_registry, toy_pipeline, session
+):
     out = tmp_path / "out"
     registry, counter = toy_registry()
     _run(registry, session, toy_pipeline, out)
@@ -29,7 +31,9 @@ def test_second_run_of_unchanged_pipeline_executes_nothing(tmp_path, toy_registr
     assert (out / "s1" / "calibration.json").read_text() == first
 
 
-def test_version_bump_reruns_exactly_that_stage_and_its_dependents(tmp_path, toy_registry, toy_pipeline, session):
+def test_version_bump_reruns_exactly_that_stage_and_its_dependents(
+    tmp_path, toy_registry, toy_pipeline, session
+):
     out = tmp_path / "out"
     _run(toy_registry()[0], session, toy_pipeline, out)
     # a new version whose output differs: the stage and everything downstream rerun
@@ -46,7 +50,9 @@ def test_version_bump_reruns_exactly_that_stage_and_its_dependents(tmp_path, toy
     assert counter.cached == ["scaled"]
 
 
-def test_early_cutoff_version_bump_with_identical_output(tmp_path, toy_registry, toy_pipeline, session):
+def test_early_cutoff_version_bump_with_identical_output(
+    tmp_path, toy_registry, toy_pipeline, session
+):
     out = tmp_path / "out"
     _run(toy_registry()[0], session, toy_pipeline, out)
     registry, counter = toy_registry(scale_version="2")  # same behaviour, new version
@@ -56,7 +62,8 @@ def test_early_cutoff_version_bump_with_identical_output(tmp_path, toy_registry,
 
 
 def test_param_change_reruns_stage_and_dependents_and_cutoff_on_noop_param(
-        tmp_path, toy_registry, toy_pipeline, session):
+    tmp_path, toy_registry, toy_pipeline, session
+):
     out = tmp_path / "out"
     _run(toy_registry()[0], session, toy_pipeline, out)
 
@@ -87,7 +94,9 @@ def test_changed_session_file_reruns_its_consumers(tmp_path, toy_registry, toy_p
     assert sorted(counter.ran) == ["accel", "gyro", "mag", "scaled"]
 
 
-def test_outputs_carry_provenance_and_round_trip_their_digest(tmp_path, toy_registry, toy_pipeline, session):
+def test_outputs_carry_provenance_and_round_trip_their_digest(
+    tmp_path, toy_registry, toy_pipeline, session
+):
     out = tmp_path / "out"
     _run(toy_registry()[0], session, toy_pipeline, out)
     manifest = read_manifest(out / "s1" / "run.json")
@@ -114,3 +123,48 @@ def test_incomplete_cache_entry_is_not_a_hit(tmp_path, toy_registry, toy_pipelin
     registry, counter = toy_registry()
     _run(registry, session, toy_pipeline, out)
     assert counter.ran == ["gyro"]
+
+
+def test_solver_version_bump_reruns_the_stages_using_it(
+    tmp_path, toy_registry, toy_pipeline, session
+):
+    out = tmp_path / "out"
+    _run(toy_registry()[0], session, toy_pipeline, out)
+    registry, counter = toy_registry(solver_version="2")
+    _run(registry, session, toy_pipeline, out)
+    assert sorted(counter.ran) == ["accel", "gyro", "mag"]
+    assert counter.cached == ["scaled"]
+
+
+def test_manifest_session_digest_covers_the_files_it_names(tmp_path):
+    from imupipe.pipeline.cache import session_digest, session_files
+
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "acc.csv").write_text("1,2,3\n")
+    (tmp_path / "sub" / "gyro.csv").write_text("4,5,6\n")
+    manifest = tmp_path / "session.toml"
+    manifest.write_text(
+        '[session]\nname = "lab"\n[[files]]\npath = "acc.csv"\n[[files]]\npath = "sub/gyro.csv"\n'
+    )
+    assert session_files(manifest) == [
+        manifest,
+        tmp_path / "acc.csv",
+        tmp_path / "sub" / "gyro.csv",
+    ]
+    before = session_digest(manifest)
+    (tmp_path / "sub" / "gyro.csv").write_text("4,5,7\n")
+    assert session_digest(manifest) != before  # a data file changed, the manifest did not
+
+
+def test_unreadable_cache_entry_is_a_clear_error(tmp_path, toy_registry, toy_pipeline, session):
+    import pytest
+
+    from imupipe.errors import ImupipeError
+
+    out = tmp_path / "out"
+    _run(toy_registry()[0], session, toy_pipeline, out)
+    key = read_manifest(out / "s1" / "run.json")["stages"]["gyro"]["key"]
+    (out / CACHE_DIR / key[:2] / key / "calibration.arrow").write_bytes(b"truncated")
+    with pytest.raises(ImupipeError, match=r"cached output is unreadable .* delete .* and rerun"):
+        _run(toy_registry()[0], session, toy_pipeline, out)
+    assert not (out / "s1" / "calibration.json").exists()

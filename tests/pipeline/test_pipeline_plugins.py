@@ -1,4 +1,4 @@
-"""The plugin registry as the pipeline relies on it: duplicates, reader choice, ``imupipe plugins``."""
+"""The plugin registry as the pipeline relies on it: duplicates, readers, listing."""
 
 from __future__ import annotations
 
@@ -71,7 +71,9 @@ def test_reader_choice_is_a_firstresult_hook_a_plugin_can_win(tmp_path):
             return "two" if path.suffix == ".arrowsession" else None
 
     chooser = Chooser()
-    registry = make_registry([_ReaderPlugin("one"), _ReaderPlugin("two"), chooser], entry_points_too=False)
+    registry = make_registry(
+        [_ReaderPlugin("one"), _ReaderPlugin("two"), chooser], entry_points_too=False
+    )
     path = pipeline_toys.write_session(tmp_path / "s.arrowsession", streams=("accel",))
     assert choose_reader(path, registry).name == "two"  # the built-in (trylast) never sees the tie
     assert chooser.asked == [["one", "two"]]
@@ -82,8 +84,11 @@ def test_imupipe_plugins_lists_name_distribution_version_and_provides(monkeypatc
     real = make_registry()  # entry points: the built-ins come through the same door as plugins
     names = {c.plugin for c in real.all()}
     assert "builtin_exporters" in names and "builtin_executors" in names
-    monkeypatch.setattr(imupipe.plugins, "make_registry",
-                        lambda *a, **k: make_registry([pipeline_toys], entry_points_too=True))
+    monkeypatch.setattr(
+        imupipe.plugins,
+        "make_registry",
+        lambda *a, **k: make_registry([pipeline_toys], entry_points_too=True),
+    )
     assert cli.main(["plugins"]) == 0
     text = capsys.readouterr().out
     lines = text.splitlines()
@@ -94,5 +99,8 @@ def test_imupipe_plugins_lists_name_distribution_version_and_provides(monkeypatc
     assert "exporter:calibration_json" in lines[j + 1]
     k = next(i for i, line in enumerate(lines) if "pipeline_toys" in line)
     assert "(-" in lines[k]  # not from an installed distribution
-    assert "reader:arrowsession" in lines[k + 1] and "stage:toy_scale" in lines[k + 1] \
+    assert (
+        "reader:arrowsession" in lines[k + 1]
+        and "stage:toy_scale" in lines[k + 1]
         and "solver:toy_mean" in lines[k + 1]
+    )

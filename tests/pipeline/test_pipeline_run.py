@@ -32,8 +32,11 @@ def test_run_writes_calibration_json_of_the_contract(tmp_path, toy_registry, toy
     assert doc["imupipe_version"] == __version__ and doc["temperature_reference_C"] == 25.0
     # the toy bias stage removes gravity from accel only: mag keeps the toy field
     field = np.array([2e-5, 0.0, 4e-5])
-    for sensor, unit, scale, offset in (("accel", "m/s^2", 1.0, 0.0), ("gyro", "rad/s", 1.0, 0.0),
-                                        ("mag", "T", 1e-6, field)):
+    for sensor, unit, scale, offset in (
+        ("accel", "m/s^2", 1.0, 0.0),
+        ("gyro", "rad/s", 1.0, 0.0),
+        ("mag", "T", 1e-6, field),
+    ):
         triad = doc[sensor]
         assert triad["units"] == unit
         assert np.array(triad["M"]).shape == (3, 3) and len(triad["k"]) == 3
@@ -43,7 +46,9 @@ def test_run_writes_calibration_json_of_the_contract(tmp_path, toy_registry, toy
     assert set(Calibration.from_dict(doc).triads) == {"accel", "gyro", "mag"}
 
 
-def test_missing_stream_skips_stage_and_downstream_and_exports_the_rest(tmp_path, toy_registry, caplog):
+def test_missing_stream_skips_stage_and_downstream_and_exports_the_rest(
+    tmp_path, toy_registry, caplog
+):
     registry, counter = toy_registry()
     pipeline = tmp_path / "p.toml"
     pipeline.write_text(TOY_PIPELINE)
@@ -60,27 +65,40 @@ def test_missing_stream_skips_stage_and_downstream_and_exports_the_rest(tmp_path
 
 def test_skipped_upstream_skips_downstream(tmp_path, toy_registry):
     registry, _ = toy_registry()
-    text = TOY_PIPELINE + ('\n[stages.wrapped]\nuses = "toy_bias_accel"\ninputs = { samples = "scaled2.samples" }\n'
-             '\n[stages.scaled2]\nuses = "toy_scale"\ninputs = { samples = "scaled.samples" }\n')
+    text = TOY_PIPELINE + (
+        '\n[stages.wrapped]\nuses = "toy_bias_accel"\ninputs = { samples = "scaled2.samples" }\n'
+        '\n[stages.scaled2]\nuses = "toy_scale"\ninputs = { samples = "scaled.samples" }\n'
+    )
     pipeline = tmp_path / "p.toml"
     pipeline.write_text(text)
     session = write_session(tmp_path / "noaccel.arrowsession", streams=("gyro", "mag"))
     run_sessions([session], pipeline, tmp_path / "out", quiet=True, registry=registry)
     manifest = json.loads((tmp_path / "out" / "noaccel" / "run.json").read_text())
     status = {k: v["status"] for k, v in manifest["stages"].items()}
-    assert status == {"scaled": "skipped", "scaled2": "skipped", "accel": "skipped", "wrapped": "skipped",
-                      "gyro": "ran", "mag": "ran"}
+    assert status == {
+        "scaled": "skipped",
+        "scaled2": "skipped",
+        "accel": "skipped",
+        "wrapped": "skipped",
+        "gyro": "ran",
+        "mag": "ran",
+    }
     assert "upstream stage 'scaled' was skipped" in manifest["stages"]["scaled2"]["reason"]
 
 
-def test_failing_session_leaves_no_calibration_and_others_still_run(tmp_path, toy_registry, toy_pipeline, session):
+def test_failing_session_leaves_no_calibration_and_others_still_run(
+    tmp_path, toy_registry, toy_pipeline, session
+):
     registry, _ = toy_registry()
     out = tmp_path / "out"
     bad = tmp_path / "data" / "bad.arrowsession"
     bad.write_bytes(b"not arrow at all")
     (out / "bad").mkdir(parents=True)
     (out / "bad" / "calibration.json").write_text("{}")  # stale result of an earlier run
-    with pytest.raises(ReaderError, match=r"bad.arrowsession: not an Arrow IPC session .*\(1 of 2 sessions failed\)"):
+    with pytest.raises(
+        ReaderError,
+        match=r"bad.arrowsession: not an Arrow IPC session .*\(1 of 2 sessions failed\)",
+    ):
         run_sessions([bad, session], toy_pipeline, out, quiet=True, registry=registry)
     assert not (out / "bad" / "calibration.json").exists()
     assert (out / "s1" / "calibration.json").is_file()
@@ -90,8 +108,12 @@ def test_failing_session_leaves_no_calibration_and_others_still_run(tmp_path, to
 def test_stage_breaking_its_contract_is_a_schema_error(tmp_path, toy_registry, session):
     registry, _ = toy_registry()
     pipeline = tmp_path / "p.toml"
-    pipeline.write_text('name = "broken"\n[stages.b]\nuses = "toy_broken"\ninputs = { samples = "session.accel" }\n')
-    with pytest.raises(SchemaError, match=r"stage 'b' \(toy_broken\): returned outputs \['wrong'\]"):
+    pipeline.write_text(
+        'name = "broken"\n[stages.b]\nuses = "toy_broken"\ninputs = { samples = "session.accel" }\n'
+    )
+    with pytest.raises(
+        SchemaError, match=r"stage 'b' \(toy_broken\): returned outputs \['wrong'\]"
+    ):
         run_sessions([session], pipeline, tmp_path / "out", quiet=True, registry=registry)
     manifest = json.loads((tmp_path / "out" / "s1" / "run.json").read_text())
     assert "SchemaError" in manifest["error"]
@@ -122,7 +144,7 @@ def test_report_exporter_is_called_when_registered(tmp_path, toy_registry, sessi
     plugin = ReportPlugin()
     registry, _ = toy_registry(plugin)
     run_sessions([session], pipeline, tmp_path / "out", quiet=True, registry=registry)
-    (results, context, out_dir), = plugin.exporter.calls
+    ((results, context, out_dir),) = plugin.exporter.calls
     assert list(results) == ["scaled.samples", "gyro.calibration"]
     assert results["scaled.samples"].num_rows == 200
     assert context["pipeline"] == "toy" and out_dir == tmp_path / "out" / "s1"
@@ -133,7 +155,9 @@ def test_report_exporter_is_called_when_registered(tmp_path, toy_registry, sessi
 
 
 def test_session_ids_are_stems_made_unique():
-    ids = session_ids([Path("a/run.mcap"), Path("b/run.mcap"), Path("x/lab1/session.toml"), Path("c.csv")])
+    ids = session_ids(
+        [Path("a/run.mcap"), Path("b/run.mcap"), Path("x/lab1/session.toml"), Path("c.csv")]
+    )
     assert ids[0].startswith("run-") and ids[1].startswith("run-") and ids[0] != ids[1]
     assert ids[2:] == ["lab1", "c"]
 
@@ -142,7 +166,12 @@ def test_cli_run_quiet(tmp_path, toy_registry, toy_pipeline, session, monkeypatc
     registry, counter = toy_registry()
     monkeypatch.setattr(api, "make_registry", lambda *a, **k: registry)
     out = tmp_path / "out"
-    assert cli.main(["run", str(session), "--pipeline", str(toy_pipeline), "--out", str(out), "--quiet"]) == 0
+    assert (
+        cli.main(
+            ["run", str(session), "--pipeline", str(toy_pipeline), "--out", str(out), "--quiet"]
+        )
+        == 0
+    )
     captured = capsys.readouterr()
     assert captured.err == ""
     assert (out / "s1" / "calibration.json").is_file()
@@ -153,13 +182,30 @@ def test_cli_run_bad_session_exits_2(tmp_path, toy_registry, toy_pipeline, monke
     registry, _ = toy_registry()
     monkeypatch.setattr(api, "make_registry", lambda *a, **k: registry)
     missing = tmp_path / "nope.arrowsession"
-    assert cli.main(["run", str(missing), "--pipeline", str(toy_pipeline), "--out", str(tmp_path / "o"),
-                     "--quiet"]) == 2
+    assert (
+        cli.main(
+            [
+                "run",
+                str(missing),
+                "--pipeline",
+                str(toy_pipeline),
+                "--out",
+                str(tmp_path / "o"),
+                "--quiet",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "nope.arrowsession: no such file" in err
+    args = ["run", str(tmp_path), "--pipeline", str(toy_pipeline), "--out", str(tmp_path / "o")]
+    assert cli.main(args) == 2
+    assert "is a directory; give a recording file or a session.toml" in capsys.readouterr().err
 
 
-def test_recording_is_not_read_when_everything_is_cached(tmp_path, toy_registry, toy_pipeline, session, monkeypatch):
+def test_recording_is_not_read_when_everything_is_cached(
+    tmp_path, toy_registry, toy_pipeline, session, monkeypatch
+):
     registry, _ = toy_registry()
     run_sessions([session], toy_pipeline, tmp_path / "out", quiet=True, registry=registry)
 
@@ -175,7 +221,9 @@ def test_recording_is_not_read_when_everything_is_cached(tmp_path, toy_registry,
     # the exported table is the cached one
     rec = json.loads((tmp_path / "out" / "s1" / "run.json").read_text())["stages"]["gyro"]
     key = rec["key"]
-    assert read_arrow(tmp_path / "out" / ".cache" / key[:2] / key / "calibration.arrow").num_rows == 1
+    assert (
+        read_arrow(tmp_path / "out" / ".cache" / key[:2] / key / "calibration.arrow").num_rows == 1
+    )
 
 
 def test_run_with_no_exportable_calibration_fails(tmp_path, toy_registry):
@@ -186,3 +234,27 @@ def test_run_with_no_exportable_calibration_fails(tmp_path, toy_registry):
     with pytest.raises(ImupipeError, match="no calibration table to export"):
         run_sessions([session], pipeline, tmp_path / "out", quiet=True, registry=registry)
     assert not (tmp_path / "out" / "tonly" / "calibration.json").exists()
+
+
+def test_report_needing_a_missing_extra_warns_and_keeps_the_calibration(
+    tmp_path, toy_registry, session
+):
+    from imupipe.errors import MissingExtraError
+
+    class NeedsExtra:
+        name = "report"
+
+        def export(self, results, context, out_dir):
+            raise MissingExtraError("matplotlib", "report")
+
+    class Plugin:
+        @hookimpl
+        def imupipe_register_exporters(self, register):
+            register(NeedsExtra())
+
+    pipeline = tmp_path / "p.toml"
+    pipeline.write_text(TOY_PIPELINE + 'reports = ["gyro.calibration"]\n')
+    registry, _ = toy_registry(Plugin())
+    with pytest.warns(UserWarning, match=r"no report written: .*imupipe\[report\]"):
+        run_sessions([session], pipeline, tmp_path / "out", quiet=True, registry=registry)
+    assert (tmp_path / "out" / "s1" / "calibration.json").is_file()

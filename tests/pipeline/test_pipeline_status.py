@@ -40,8 +40,9 @@ def test_status_says_why(tmp_path, toy_registry, toy_pipeline, session):
     assert lines["gyro"] == "stale version changed 1 -> 2"
     assert lines["scaled"] == "fresh"
 
-    toy_pipeline.write_text(TOY_PIPELINE.replace("factor = 1.0", "factor = 2.5")
-                            .replace("scale = 1.0", "scale = 2.0"))
+    toy_pipeline.write_text(
+        TOY_PIPELINE.replace("factor = 1.0", "factor = 2.5").replace("scale = 1.0", "scale = 2.0")
+    )
     registry, counter = toy_registry()
     lines = _lines(status([session], toy_pipeline, out, registry=registry))
     assert lines["scaled"] == "stale param factor changed 1.0 -> 2.5"
@@ -56,7 +57,9 @@ def test_status_says_why(tmp_path, toy_registry, toy_pipeline, session):
     assert counter.ran == []
 
 
-def test_status_with_no_session_uses_those_run_in_out(tmp_path, toy_registry, toy_pipeline, session):
+def test_status_with_no_session_uses_those_run_in_out(
+    tmp_path, toy_registry, toy_pipeline, session
+):
     registry, _ = toy_registry()
     out = tmp_path / "out"
     assert "no sessions have been run here" in status([], toy_pipeline, out, registry=registry)
@@ -73,5 +76,7 @@ def test_cli_status(tmp_path, toy_registry, toy_pipeline, session, monkeypatch, 
     registry, _ = toy_registry()
     monkeypatch.setattr(api, "make_registry", lambda *a, **k: registry)
     out = tmp_path / "out"
-    assert cli.main(["status", str(session), "--pipeline", str(toy_pipeline), "--out", str(out)]) == 0
+    assert (
+        cli.main(["status", str(session), "--pipeline", str(toy_pipeline), "--out", str(out)]) == 0
+    )
     assert "stale   scaled" in capsys.readouterr().out

@@ -67,7 +67,8 @@ def cdr_message(sec: int, nanosec: int, frame_id: str, block, *, big_endian: boo
 
 def write_raw(path: Path, messages, *, extra_schemas=(), chunk_size: int = 4096,
               compression=CompressionType.ZSTD, index_types=IndexType.ALL,
-              use_chunking: bool = True, use_summary: bool = True) -> Path:
+              use_chunking: bool = True, use_summary: bool = True,
+              repeat_channels: bool = True) -> Path:
     """Write ``messages`` [(topic, kind, log_time_ns, data)] in the given order.
 
     ``kind`` is a key of ``cdr.KIND_SCHEMA`` or, for other topics, a schema name
@@ -76,8 +77,8 @@ def write_raw(path: Path, messages, *, extra_schemas=(), chunk_size: int = 4096,
     with open(path, "wb") as f:
         w = Writer(f, chunk_size=chunk_size, compression=compression, index_types=index_types,
                    use_chunking=use_chunking, use_statistics=use_summary,
-                   use_summary_offsets=use_summary, repeat_channels=use_summary,
-                   repeat_schemas=use_summary)
+                   use_summary_offsets=use_summary, repeat_channels=use_summary and repeat_channels,
+                   repeat_schemas=use_summary and repeat_channels)
         w.start(profile="ros2", library="imupipe-tests")
         schema_ids = {k: w.register_schema(cdr.KIND_SCHEMA[k], "ros2msg", text)
                       for k, text in SCHEMA_TEXT.items()}

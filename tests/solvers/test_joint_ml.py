@@ -51,7 +51,7 @@ def test_joint_ml_recovers_both_triads_with_honest_sigmas():
     assert np.abs(a.b0 - s.b_accel).max() / MG < ACC_BIAS_TOL_MG
     assert np.abs(g.M @ s.S_gyro - np.eye(3)).max() * 1e6 < GYRO_SHAPE_TOL_PPM
     est = np.concatenate([a.M.ravel(), a.b0, g.M.ravel(), g.b0])
-    sigma = np.sqrt(np.diag(fit.cov))
+    sigma = np.sqrt(np.diag(fit.cov))[:24]
     free = sigma > 1e-12  # the three fixed upper entries of the accelerometer
     assert free.sum() == 21
     z = np.abs(est - _truth_vector(s))[free] / sigma[free]
@@ -80,7 +80,7 @@ def test_covariance_at_truth_is_the_cramer_rao_bound_of_a_monte_carlo():
         errs.append(np.concatenate([a.M.ravel(), a.b0, g.M.ravel(), g.b0]) - _truth_vector(s))
         prob = JointProblem(s.rests, s.turns, G, s.S_accel, s.b_accel, np.linalg.inv(s.S_gyro),
                             s.b_gyro, u0=s.gravity_body)
-        crb.append(np.diag(prob.covariance(prob.x0)))
+        crb.append(np.diag(prob.covariance(prob.x0))[:24])
     bound = np.sqrt(np.mean(crb, axis=0))
     free = bound > 1e-12
     ratio = np.sqrt(np.mean(np.square(errs), axis=0))[free] / bound[free]
@@ -93,3 +93,25 @@ def test_joint_ml_needs_turns():
     s = make_session(13, n_rests=4)
     with pytest.raises(SolverError, match="at least 9 rests and 5 turns"):
         _solve(s, *_start(s))
+
+
+K_ACCEL = np.array([2e-3, -1.5e-3, 1e-3])  # m/s^2 per degC (~0.2 mg/degC)
+K_GYRO = np.array([1.7e-4, -1.2e-4, 0.9e-4])  # rad/s per degC (~0.01 deg/s/degC)
+K_ACCEL_TOL = 2e-4  # m/s^2 per degC
+K_GYRO_TOL = 1e-5  # rad/s per degC
+
+
+def test_joint_ml_fits_temperature_coefficients_of_a_warming_session():
+    s = make_session(14, n_rests=80, k_accel=K_ACCEL, k_gyro=K_GYRO)
+    assert np.ptp(s.rests.temperature) > 10
+    fit = _solve(s, *_start(s))
+    assert fit.details["fitted_temperature_coefficients"]
+    assert np.abs(fit.k["accel"] - K_ACCEL).max() < K_ACCEL_TOL
+    assert np.abs(fit.k["gyro"] - K_GYRO).max() < K_GYRO_TOL
+    assert np.all(np.abs(fit.k["gyro"] - K_GYRO) < Z_MAX * fit.sigma_k["gyro"])
+    a, g = fit.triads["accel"], fit.triads["gyro"]
+    assert np.abs(a.b0 - s.b_accel).max() / MG < ACC_BIAS_TOL_MG
+    assert np.abs(a.M @ s.S_accel - np.eye(3)).max() * 1e6 < ACC_SHAPE_TOL_PPM
+    assert np.abs(g.M @ s.S_gyro - np.eye(3)).max() * 1e6 < GYRO_SHAPE_TOL_PPM
+    without = _solve(s, *_start(s), fit_temperature="no")  # the drift then biases the fit
+    assert np.abs(without.triads["accel"].b0 - s.b_accel).max() > np.abs(a.b0 - s.b_accel).max()

@@ -12,9 +12,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/ (import-m
 from method_b_synth import G, make_session
 
 from imupipe.errors import SolverError
-from imupipe.observations import EllipsoidObservations, GyroObservations
+from imupipe.observations import EllipsoidObservations, GyroObservations, Turns
 from imupipe.solvers.ellipsoid_svd import EllipsoidSVD, EllipsoidSVDParams, fit_quadric
-from imupipe.solvers.gyro_integration import GyroIntegration, GyroIntegrationParams
+from imupipe.solvers.gyro_integration import (
+    GyroIntegration,
+    GyroIntegrationParams,
+    saturated_turns,
+)
 from imupipe.solvers.rotation_integration import (
     compose,
     pad_turns,
@@ -97,6 +101,10 @@ def test_symmetric_root_fits_the_same_ellipsoid():
     sym = EllipsoidSVD().solve(obs, EllipsoidSVDParams(square_root="symmetric"))
     np.testing.assert_allclose(sym.M.T @ sym.M, chol.M.T @ chol.M, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(sym.M, sym.M.T, atol=1e-12)
+    upper = EllipsoidSVD().solve(obs, EllipsoidSVDParams(square_root="upper_correction"))
+    np.testing.assert_allclose(upper.M.T @ upper.M, chol.M.T @ chol.M, rtol=1e-9, atol=1e-12)
+    assert np.allclose(np.tril(upper.M, -1), 0.0, atol=1e-15)  # imu_tk's T K
+    assert np.all(np.isfinite(np.diag(upper.cov)))
 
 
 def test_ellipsoid_svd_says_how_many_positions_are_missing():
@@ -136,3 +144,49 @@ def test_gyro_integration_says_more_turns_are_needed():
     s = make_session(0, n_rests=4)
     with pytest.raises(SolverError, match="more turns"):
         GyroIntegration().solve(_gyro_obs(s), GyroIntegrationParams())
+
+
+def test_axis_aligned_quadric_from_six_poses():
+    S = np.diag([0.99, 1.01, 1.02])
+    b = np.array([0.5, -0.6, 0.4])
+    up = np.vstack([np.eye(3), -np.eye(3)])
+    y = (G * up) @ S.T + b
+    obs = EllipsoidObservations("accel", y, np.tile(np.eye(3) * 1e-8, (6, 1, 1)), np.full(6, np.nan), G)
+    fit = EllipsoidSVD().solve(obs, EllipsoidSVDParams(misalignment=False))
+    np.testing.assert_allclose(np.linalg.inv(fit.M), S, atol=1e-9)
+    np.testing.assert_allclose(fit.b0, b, atol=1e-9)
+    with pytest.raises(SolverError, match="misalignment = false"):
+        EllipsoidSVD().solve(obs, EllipsoidSVDParams())
+
+
+def _clip(s, limit):
+    return type(s.turns)(s.turns.before, s.turns.after, s.turns.t,
+                         tuple(np.clip(w, -limit, limit) for w in s.turns.gyro))
+
+
+def test_clipped_turns_are_found_left_out_and_warned():
+    s = make_session(7, n_rests=30, speed_dps=120.0)
+    limit = np.radians(110.0)  # peaks reach ~140 deg/s on some turns, on several axes
+    clipped = _clip(s, limit)
+    bad, n, _ = saturated_turns(clipped)
+    bad_known, _, _ = saturated_turns(clipped, limit)
+    peaks = np.array([np.abs(w).max() for w in s.turns.gyro]) >= limit
+    assert n > 0 and bad.sum() >= 2
+    np.testing.assert_array_equal(bad_known, peaks)
+    assert np.all(bad <= peaks)  # never flags a turn that did not clip
+    obs = GyroObservations(s.gravity_body, s.rests.mean["gyro"], s.rests.cov_of_mean("gyro"), clipped)
+    with pytest.warns(UserWarning, match="saturated gyro samples"):
+        fit = GyroIntegration().solve(obs, GyroIntegrationParams())
+    assert fit.details["turns_saturated"] == bad.sum()
+    assert np.abs(fit.M @ s.S_gyro - np.eye(3)).max() * 1e6 < GYRO_SHAPE_TOL_PPM
+
+
+def test_one_axis_plateau_is_not_clipping():
+    """A constant-rate turn sits at one axis's extreme for many samples: not a rail."""
+    t = np.arange(300) * 0.01
+    w = np.zeros((300, 3))
+    w[50:250, 2] = 1.5  # 200 samples at the z maximum
+    w[:, 0] = 0.01 * np.sin(t)
+    turns = Turns(np.array([0]), np.array([1]), (t,), (w,))
+    bad, n, _ = saturated_turns(turns)
+    assert not bad.any() and n == 0

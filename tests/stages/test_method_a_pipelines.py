@@ -59,3 +59,19 @@ def test_default_pipeline_without_a_stream(missing, session_csv, tmp_path):
     assert expected <= set(cal) and ("mag" in cal) == (missing != "mag")
     if missing == "temperature":
         assert cal["accel"]["k"] == [0.0, 0.0, 0.0]
+
+
+def test_report_exporter_writes_figures(session_csv, tmp_path):
+    import imupipe.report
+    from imupipe.plugins import make_registry
+
+    pytest.importorskip("matplotlib")
+    registry = make_registry()
+    if "report" not in registry.names("exporters"):  # until the entry point is declared
+        registry = make_registry([imupipe.report])
+    run_sessions([session_csv], PIPELINES / "default.toml", tmp_path, quiet=True, registry=registry)
+    run_dir = tmp_path / session_csv.stem
+    text = (run_dir / "report.md").read_text()
+    assert "Turn validation" in text and "|g| error" in text
+    names = {p.name for p in (run_dir / "figures").glob("*.png")}
+    assert {"accel_norm_errors.png", "turn_errors.png", "positions.png", "gyro_thermal.png"} <= names

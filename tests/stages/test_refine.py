@@ -56,4 +56,4 @@ def test_refine_joint_stage_returns_refined_calibration_with_sigmas():
         d = cal[sensor].details
         assert np.shape(d["sigma_M"]) == (3, 3) and np.all(np.isfinite(d["sigma_b0"]))
         assert d["start_solver"] in ("ellipsoid_svd", "gyro_integration")
-    assert np.shape(cal["accel"].details["joint_covariance"]) == (24, 24)
+    assert np.shape(cal["accel"].details["joint_covariance"]) == (30, 30)

@@ -100,7 +100,8 @@ def test_accel_and_gyro_on_different_stamps_get_separate_messages(tmp_path):
     accel, gyro = triad([0, 10, 20], rng), triad([0, 15, 20], rng)
     path = tmp_path / "split.mcap"
     write_mcap(path, Recording("t", {"imu": {"accel": accel, "gyro": gyro}}))
-    _, _, msgs = decoded(path)
+    _, summary, msgs = decoded(path)
+    assert [s.name for s in summary.schemas.values()] == ["sensor_msgs/msg/Imu"]  # only used
     assert [(m[0], m[4], m[6]) for m in msgs] == [("/imu/imu", t, i) for i, t in
                                                  enumerate([0, 10, 15, 20])]
     m = [d for *_, d in msgs]
