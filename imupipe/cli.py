@@ -106,7 +106,8 @@ def _cmd_plugins(args) -> int:
 def _cmd_run(args) -> int:
     from .pipeline.api import run_sessions
 
-    run_sessions(args.sessions, pipeline=args.pipeline, out=args.out, quiet=args.quiet)
+    for path in run_sessions(args.sessions, pipeline=args.pipeline, out=args.out, quiet=args.quiet):
+        print(path)
     return 0
 
 

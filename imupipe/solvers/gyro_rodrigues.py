@@ -155,7 +155,8 @@ class GyroRodrigues:
         M = beta * M_hat
 
         cov = np.zeros((12, 12))
-        cov[:9, :9] = self._covariance(H, Z, m, beta, rates, sel, g0, g1, params)
+        cov[:9, :9] = self._covariance(H, Z, m, beta, rates, sel, g0, g1,
+                                        params.exact_rotation or obs.roll_turn is not None)
         b0 = obs.bias.mean(axis=0)
         cov[9:, 9:] = np.cov(obs.bias.T) / len(obs.bias) if len(obs.bias) > 1 else np.nan
         details = {
@@ -186,10 +187,14 @@ class GyroRodrigues:
             sel = [j for j, keep in zip(sel, small, strict=True) if keep]
             phis = phis[small]
         chosen = [rates[j] for j in sel]
-        if obs.roll_turn is not None:
+        if obs.roll_turn is not None and (beta_prev is None or not exact):
             d_gamma = np.arccos(np.clip(g0[sel[0]] @ g1[sel[0]], -1, 1))
-            return float(d_gamma / np.linalg.norm(phis[0])), sel  # Eq. (37)
-        if beta_prev is None or not exact:
+            beta = float(d_gamma / np.linalg.norm(phis[0]))  # Eq. (37)
+            if not exact:
+                return beta, sel
+            # exact: refine on the carried gravity below, so a roll axis a few degrees off
+            # the horizontal (angle between the g's != turn angle) biases nothing
+        elif beta_prev is None or not exact:
             s, d = g0[sel] + g1[sel], g1[sel] - g0[sel]
             c = np.cross(0.5 * phis, s)
             beta = float(-np.sum(c * d) / np.sum(c * c))  # small-angle LS of eq. (38)
@@ -212,7 +217,7 @@ class GyroRodrigues:
         return beta, sel
 
     @staticmethod
-    def _covariance(H, Z, m, beta, rates, sel, g0, g1, params) -> np.ndarray:
+    def _covariance(H, Z, m, beta, rates, sel, g0, g1, exact_scale: bool) -> np.ndarray:
         """(9, 9) covariance of vec(M) from the stacked residuals, linearised at the solution.
 
         The 8 entries m come from the rows of eq. (35) alone; beta minimises the scale
@@ -224,7 +229,7 @@ class GyroRodrigues:
 
         def scale_resid(x: np.ndarray) -> np.ndarray:
             Mx = x[8] * np.array([[1.0, x[0], x[1]], [x[2], x[3], x[4]], [x[5], x[6], x[7]]])
-            if params.exact_rotation:
+            if exact_scale:
                 q = integrate_rotations([t for t, _ in chosen], [w @ Mx.T for _, w in chosen])
                 return (carry_gravity(q, a) - b).ravel()
             phis = rotations_of(chosen, Mx, False)
@@ -240,7 +245,7 @@ class GyroRodrigues:
             J_s[:, i] = (scale_resid(xp) - r_s) / h
         r_h = Z - H @ m
         s2_h = float(r_h @ r_h) / max(len(Z) // 3 - 8, 1)  # G has rank 1: one equation per turn
-        dof_s = max((2 if params.exact_rotation else 3) * len(sel) - 1, 1)
+        dof_s = max((2 if exact_scale else 3) * len(sel) - 1, 1)
         s2_s = max(float(r_s @ r_s) / dof_s, 1e-30)
         # the estimator: m from eq. (35) alone; beta minimises the scale residuals given m
         cov_m = s2_h * np.linalg.pinv(H.T @ H)

@@ -33,10 +33,14 @@ from ._calib_common import (
 class GyroParams(Params):
     """``roll_turn``: index of the paper's scale turn (eq. 37), None: scale from all turns;
     ``roll_turn_time_s``: or a time inside it (s since the session start);
+    ``detect_roll_turn``: otherwise take a turn from instrument Y up to Z down (corrected
+    gravity within ``detect_tol_deg`` of +Y before and -Z after, eq. 37), if there is one;
     ``max_turn_s``: motions longer than this (e.g. a carry to the turntable) are left out."""
 
     roll_turn: int | None = None
     roll_turn_time_s: float | None = None
+    detect_roll_turn: bool = False
+    detect_tol_deg: float = 5.0
     max_turn_s: float = 30.0
     solver: str = "gyro_rodrigues"
     solver_params: dict = Field(default_factory=dict)
@@ -49,12 +53,24 @@ def rest_gravity(inputs: Mapping[str, pa.Table], rests: Rests, stage: str) -> np
     return g / np.linalg.norm(g, axis=1, keepdims=True)
 
 
-def turn_subset(turns: Turns, p: GyroParams) -> tuple[Turns, int | None]:
+def find_roll_turn(turns: Turns, gravity: np.ndarray, tol_deg: float) -> int | None:
+    """The turn from instrument Y up to Z down (the paper's scale turn), or None."""
+    cos_tol = np.cos(np.radians(tol_deg))
+    for j in range(len(turns)):
+        g0, g1 = gravity[turns.before[j]], gravity[turns.after[j]]
+        if g0[1] >= cos_tol and -g1[2] >= cos_tol:
+            return j
+    return None
+
+
+def turn_subset(turns: Turns, p: GyroParams, gravity: np.ndarray) -> tuple[Turns, int | None]:
     keep = np.array([len(t) > 1 and (t[-1] - t[0]) <= p.max_turn_s for t in turns.t], dtype=bool)
     roll = p.roll_turn
     if roll is None and p.roll_turn_time_s is not None:
         inside = [j for j, t in enumerate(turns.t) if len(t) and t[0] <= p.roll_turn_time_s <= t[-1]]
         roll = inside[0] if inside else None
+    if roll is None and p.detect_roll_turn:
+        roll = find_roll_turn(turns, gravity, p.detect_tol_deg)
     if roll is not None:
         keep[roll] = True
         roll = int(np.cumsum(keep)[roll] - 1)
@@ -63,8 +79,9 @@ def turn_subset(turns: Turns, p: GyroParams) -> tuple[Turns, int | None]:
 
 def calibrate_gyro(inputs: Mapping[str, pa.Table], params: GyroParams, solver: BoundSolver | None):
     rests = Rests.from_table(inputs["rests"])
-    turns, roll = turn_subset(Turns.from_tables(inputs["turns"], inputs["gyro"], rests.t0_ns), params)
     gravity = rest_gravity(inputs, rests, "calibrate_gyro")
+    turns, roll = turn_subset(Turns.from_tables(inputs["turns"], inputs["gyro"], rests.t0_ns), params,
+                              gravity)
     bias = rests.need("gyro")
     obs = GyroObservations(gravity, bias, rests.cov_of_mean("gyro"), turns, rests.temperature, roll)
     fit = solver.solve(obs)

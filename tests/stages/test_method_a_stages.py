@@ -147,6 +147,22 @@ def test_gyro_recovered_in_accel_frame(session):
     assert_within_sigma(cal, true)
 
 
+def test_gyro_scale_from_the_detected_roll_turn(session):
+    inputs = {"rests": session["seg"]["rests"], "turns": session["seg"]["turns"],
+              "gyro": session["d"]["gyro"], "accel": session["ac"]["calibration"],
+              "thermal": session["th"]["calibration"]}
+    out = gyro.STAGE.func(inputs, gyro.GyroParams(detect_roll_turn=True),
+                          BoundSolver(GyroRodrigues(), GyroRodriguesParams()))
+    cal, true = one(out["calibration"], "gyro"), session["truth"].calibration["gyro"]
+    assert cal.details["scale_from"] == "roll turn (eq. 37)"
+    roll = session["truth"].segments(label="roll_turn")[0]
+    turn_t = Turns.from_tables(session["seg"]["turns"], session["d"]["gyro"]).t
+    j = [i for i, t in enumerate(turn_t) if len(t) and t[0] <= roll["t_start_s"] + 1 <= t[-1]][0]
+    assert cal.details["roll_turn"] is not None and abs(cal.details["roll_turn"] - j) <= 2
+    assert np.abs(cal.M @ true.S - np.eye(3)).max() * 1e6 < GYRO_M_TOL_PPM
+    assert_within_sigma(cal, true)
+
+
 def test_validation_improves_and_accepts(session):
     report = session["va"]["report"]
     summary = json.loads(report.schema.metadata[b"imupipe.summary"])
