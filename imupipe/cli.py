@@ -54,6 +54,8 @@ def _parser() -> argparse.ArgumentParser:
     sp.add_argument("protocol")
     sp.add_argument("--effect", action="append", default=[], metavar="NAME=JSON",
                     help='an omitted-physics effect, e.g. --effect \'lever_arm={"r_m": [0.05, 0, 0]}\'')
+    sp.add_argument("--param", action="append", default=[], metavar="KEY=JSON",
+                    help="override a protocol parameter, e.g. --param n_positions=60")
     sp.add_argument("--seed", type=int, default=0)
     sp.add_argument("--out", type=Path, default=None, help="output .mcap or .csv (default: <protocol>.mcap)")
     common(sp)
@@ -62,19 +64,25 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _parse_effects(items: list[str]) -> dict[str, dict]:
-    effects = {}
+def _parse_assignments(option: str, items: list[str], example: str) -> dict[str, object]:
+    """``NAME=JSON`` pairs of a repeated option, e.g. ``--effect lever_arm={"r_m": [0.05, 0, 0]}``."""
+    parsed = {}
     for item in items:
         name, sep, text = item.partition("=")
-        if not sep:
-            raise ImupipeError(f"--effect {item!r}: expected NAME=JSON, e.g. lever_arm={{\"r_m\": [0.05, 0, 0]}}")
+        if not sep or not name:
+            raise ImupipeError(f"{option} {item!r}: expected NAME=JSON, e.g. {example}")
         try:
-            params = json.loads(text)
+            parsed[name] = json.loads(text)
         except json.JSONDecodeError as exc:
-            raise ImupipeError(f"--effect {name}: parameters are not valid JSON ({exc.msg} at column {exc.colno})") from None
+            raise ImupipeError(f"{option} {name}: value is not valid JSON ({exc.msg} at column {exc.colno})") from None
+    return parsed
+
+
+def _parse_effects(items: list[str]) -> dict[str, dict]:
+    effects = _parse_assignments("--effect", items, 'lever_arm={"r_m": [0.05, 0, 0]}')
+    for name, params in effects.items():
         if not isinstance(params, dict):
             raise ImupipeError(f"--effect {name}: parameters must be a JSON object")
-        effects[name] = params
     return effects
 
 
@@ -130,8 +138,9 @@ def _cmd_simulate(args) -> int:
     from .sim.api import simulate
 
     out = args.out or Path(f"{args.protocol}.mcap")
+    params = _parse_assignments("--param", args.param, "n_positions=60")
     for path in simulate(args.protocol, effects=_parse_effects(args.effect), seed=args.seed, out=out,
-                         quiet=args.quiet):
+                         quiet=args.quiet, params=params):
         print(path)
     return 0
 

@@ -36,7 +36,7 @@ import numpy as np
 from pydantic import AfterValidator, ValidationError
 
 from ..components import Params
-from ..errors import ConfigError
+from ..errors import ConfigError, describe_validation
 
 STAGES = ("timing", "temperature", "input", "sensed", "bias", "output")
 
@@ -85,13 +85,13 @@ class EffectBase:
             return parameters
         try:
             return self.params.model_validate(dict(parameters))
-        except (ValidationError, TypeError, ValueError) as exc:
+        except ValidationError as exc:
             fields = ", ".join(f"{n}: {f.description or f.annotation}" for n, f in self.params.model_fields.items())
-            first = exc.errors()[0] if isinstance(exc, ValidationError) else {"loc": (), "msg": str(exc)}
-            where = ".".join(str(x) for x in first["loc"]) or "parameters"
             raise ConfigError(
-                f"effect {self.identifier}: {where}: {first['msg']}; expected parameters {{{fields}}}"
+                f"effect {self.identifier}: {describe_validation(exc, self.params)}; expected parameters {{{fields}}}"
             ) from None
+        except TypeError as exc:
+            raise ConfigError(f"effect {self.identifier}: parameters must be a JSON object ({exc})") from None
 
     def target(self, p: Params) -> str:
         """The triad this instance acts on."""

@@ -8,7 +8,6 @@ solver's. Nothing here reads data.
 
 from __future__ import annotations
 
-import difflib
 import re
 import tomllib
 from pathlib import Path
@@ -17,7 +16,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from ..components import BoundSolver, Params
-from ..errors import ConfigError, PluginError
+from ..errors import ConfigError, PluginError, describe_validation
 from ..plugins import Registry
 from . import dag
 
@@ -168,41 +167,4 @@ def _validate(model: type[Params], values: dict, path: Path, prefix: tuple) -> P
 
 def _message(path: Path, exc: ValidationError, prefix: tuple, model: type[BaseModel]) -> str:
     """One line: file, key path of the first error, what is wrong (and how many more)."""
-    # an unknown key first: a typo also shows up as the missing key it meant
-    errors = sorted(exc.errors(), key=lambda e: e["type"] != "extra_forbidden")
-    first = errors[0]
-    loc = tuple(str(p) for p in first["loc"])
-    key = ".".join((*prefix, *loc)) or "(top level)"
-    kind = first["type"]
-    if kind == "extra_forbidden":
-        what = "unknown key"
-        known = _fields_at(model, loc[:-1])
-        close = difflib.get_close_matches(loc[-1], known, n=1) if known else []
-        if close:
-            what += f"; did you mean {close[0]!r}?"
-        elif known:
-            what += f"; known keys: {', '.join(known)}"
-    elif kind == "missing":
-        what = "missing required key"
-    else:
-        what = f"{first['msg']} (found {first.get('input')!r})"
-    more = f" (and {len(errors) - 1} more error(s))" if len(errors) > 1 else ""
-    return f"{path}: {key}: {what}{more}"
-
-
-def _fields_at(model: type[BaseModel], loc: tuple) -> list[str]:
-    """Field names of the (nested) model at ``loc``, when it is a model; else []."""
-    current: Any = model
-    for part in loc:
-        if getattr(current, "__origin__", None) is dict:  # a table of sections: ``stages.<key>``
-            current = current.__args__[1]
-            continue
-        if not (isinstance(current, type) and issubclass(current, BaseModel)):
-            return []
-        info = current.model_fields.get(part)
-        if info is None:
-            return []
-        current = info.annotation
-    if isinstance(current, type) and issubclass(current, BaseModel):
-        return list(current.model_fields)
-    return []
+    return f"{path}: {describe_validation(exc, model, prefix)}"

@@ -23,7 +23,7 @@ import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ..components import Recording
-from ..errors import ConfigError, ReaderError
+from ..errors import ConfigError, ReaderError, describe_validation
 from .csv import WHITESPACE, ColumnRef, canonical_table, read_columns
 
 StreamName = Literal["accel", "gyro", "mag", "temperature"]
@@ -155,10 +155,7 @@ def load_manifest(path: Path) -> Manifest:
     try:
         return Manifest.model_validate(doc)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        where = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in err["loc"]).lstrip(".")
-        msg = err["msg"].removeprefix("Value error, ")
-        raise ConfigError(f"{path}: {where or 'top level'}: {msg}") from None
+        raise ConfigError(f"{path}: {describe_validation(exc, Manifest)}") from None
 
 
 def read_manifest(path: Path) -> Recording:

@@ -20,9 +20,10 @@ from pydantic import ValidationError
 
 from .. import schemas
 from ..components import Recording
-from ..errors import ConfigError, ImupipeError
+from ..errors import ConfigError
 from ..io import atomic_path, write_text
 from ..progress import progress
+from ..writers.mcap import write_mcap
 from . import engine, protocols
 from .environment import Environment
 from .sensor import ImuModel, default_imu
@@ -97,21 +98,21 @@ def simulate_arrays(protocol: str = "standard", effects: Mapping[str, Mapping[st
     return out, truth
 
 
-def simulate(protocol: str, effects: dict[str, dict], seed: int, out: Path, quiet: bool) -> list[Path]:
-    """Write the simulated session to ``out`` (``.mcap`` or ``.csv``) and ``<out>.truth.json``."""
+def simulate(protocol: str, effects: dict[str, dict], seed: int, out: Path, quiet: bool,
+             params: Mapping[str, Any] | None = None) -> list[Path]:
+    """Write the simulated session to ``out`` (``.mcap`` or ``.csv``) and ``<out>.truth.json``.
+
+    ``params`` overrides the protocol's parameters (e.g. ``{"n_positions": 60}``).
+    """
     out = Path(out)
     suffix = out.suffix.lower()
     if suffix not in (".mcap", ".csv"):
         raise ConfigError(f"{out}: the simulator writes .mcap or .csv; choose one of those suffixes")
     with progress(quiet) as p:
         task = p.add_task(f"simulating {protocol}", total=2)
-        recording, truth = simulate_recording(protocol, effects, seed)
+        recording, truth = simulate_recording(protocol, effects, seed, **dict(params or {}))
         p.advance(task)
         if suffix == ".mcap":
-            try:
-                from ..writers.mcap import write_mcap
-            except ImportError as exc:
-                raise ImupipeError(f"{out}: the MCAP writer is not available ({exc}); write .csv instead") from None
             write_mcap(out, recording)
         else:
             write_csv(out, recording)

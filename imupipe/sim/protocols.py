@@ -17,7 +17,7 @@ import numpy as np
 from pydantic import Field, ValidationError
 
 from ..components import Params
-from ..errors import ConfigError
+from ..errors import ConfigError, describe_validation
 from .rotations import align, matrix_to_rotvec, random_rotation
 from .trajectory import Rest, Rotate, Segment, Trajectory, Translate
 
@@ -347,10 +347,8 @@ def protocol_params(name: str, **overrides: Any) -> Params:
     cls = PROTOCOLS[name][0]
     try:
         return cls(**overrides)
-    except (ValidationError, TypeError) as exc:
-        fields = ", ".join(cls.model_fields)
-        raise ConfigError(f"protocol {name}: bad parameters ({str(exc).splitlines()[-1].strip()}); "
-                          f"expected some of: {fields}") from None
+    except ValidationError as exc:
+        raise ConfigError(f"protocol {name}: {describe_validation(exc, cls)}") from None
 
 
 def build(name: str, params: Params, rng: np.random.Generator) -> Plan:
