@@ -28,7 +28,7 @@ from imupipe.solvers.thermal_kalman import ThermalKalman, ThermalKalmanParams
 from imupipe.stages import accel, gyro, mag, segment, thermal, validate
 
 
-def run(protocol: str, seed: int, exact: bool, scale_deg: float = 10.0) -> dict:
+def run(protocol: str, seed: int, exact: bool, scale_deg: float = 10.0, roll: bool = False) -> dict:
     rec, truth = simulate_recording(protocol, None, seed)
     d = dict(rec.device("imu"))
     env = truth.data["environment"]
@@ -47,7 +47,7 @@ def run(protocol: str, seed: int, exact: bool, scale_deg: float = 10.0) -> dict:
                         BoundSolver(MagDip(), MagDipParams()))
     gy = gyro.STAGE.func({"rests": seg["rests"], "turns": seg["turns"], "gyro": d["gyro"],
                           "accel": ac["calibration"], "thermal": th["calibration"]},
-                         gyro.GyroParams(), BoundSolver(GyroRodrigues(), GyroRodriguesParams(
+                         gyro.GyroParams(detect_roll_turn=roll), BoundSolver(GyroRodrigues(), GyroRodriguesParams(
                              exact_rotation=exact, max_scale_turn_deg=60.0 if exact else scale_deg)))
     va = validate.STAGE.func({"rests": seg["rests"], "turns": seg["turns"], "gyro": d["gyro"],
                               "accel": ac["calibration"], "gyro_cal": gy["calibration"]},
@@ -78,8 +78,10 @@ def main() -> None:
     ap.add_argument("--small-angle", action="store_true", help="the paper's eq. (29) instead of exact")
     ap.add_argument("--scale-turn-deg", type=float, default=10.0,
                     help="small-angle mode: largest turn used for the scale (as sphere-rig.toml)")
+    ap.add_argument("--roll-turn", action="store_true",
+                    help="gyro scale from the detected roll turn (eq. 37) instead of all turns")
     a = ap.parse_args()
-    r = run(a.protocol, a.seed, not a.small_angle, a.scale_turn_deg)
+    r = run(a.protocol, a.seed, not a.small_angle, a.scale_turn_deg, a.roll_turn)
     truth, cal, g = r["truth"].calibration, r["cal"], r["env"]["g_m_s2"]
     Ea, Eg, Em = (cal[s].M @ truth[s].S - np.eye(3) for s in ("accel", "gyro", "mag"))
     sa, na, ra = split(Ea)
@@ -97,7 +99,8 @@ def main() -> None:
         ("mag shape", max(sm, nm) * 100, sigma_max(cal["mag"], "off") * 100, 0.2, "%"),
     ]
     print(f"method A on simulated '{a.protocol}' (seed {a.seed}), {r['n_rests']} rests, "
-          f"gyro {'small-angle (eq. 29)' if a.small_angle else 'exact rotation'}, "
+          f"gyro {'small-angle (eq. 29)' if a.small_angle else 'exact rotation'}, scale from "
+          f"{cal['gyro'].details['scale_from']}, "
           f"stages {r['elapsed']:.1f} s")
     print(f"{'quantity':28s} {'error':>10s} {'1-sigma':>10s} {'target':>8s}  unit  met")
     for name, err, sd, target, unit in rows:

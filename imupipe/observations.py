@@ -247,6 +247,8 @@ class GyroObservations:
     at every rest, rad/s; ``bias_cov`` (n, 3, 3) covariance of those means;
     ``turns``: the raw gyro during each motion; ``roll_turn``: index into
     ``turns`` of the paper's scale turn (eq. 37), or None to scale from all.
+    Optional noise model: ``gravity_cov`` (n, 3, 3) covariance of each unit
+    gravity; ``rate_sigma`` (3,) white noise of one gyro sample, rad/s.
     """
 
     gravity: np.ndarray
@@ -255,6 +257,8 @@ class GyroObservations:
     turns: Turns
     T: np.ndarray | None = None
     roll_turn: int | None = None
+    gravity_cov: np.ndarray | None = None
+    rate_sigma: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

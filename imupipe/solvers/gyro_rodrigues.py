@@ -156,7 +156,8 @@ class GyroRodrigues:
 
         cov = np.zeros((12, 12))
         cov[:9, :9] = self._covariance(H, Z, m, beta, rates, sel, g0, g1,
-                                        params.exact_rotation or obs.roll_turn is not None)
+                                        params.exact_rotation or obs.roll_turn is not None,
+                                        self._scale_noise(obs, rates, sel))
         b0 = obs.bias.mean(axis=0)
         cov[9:, 9:] = np.cov(obs.bias.T) / len(obs.bias) if len(obs.bias) > 1 else np.nan
         details = {
@@ -217,7 +218,26 @@ class GyroRodrigues:
         return beta, sel
 
     @staticmethod
-    def _covariance(H, Z, m, beta, rates, sel, g0, g1, exact_scale: bool) -> np.ndarray:
+    def _scale_noise(obs: GyroObservations, rates, sel) -> float:
+        """Variance per component of the scale residuals the noise model predicts (0: none):
+        gravity noise at both rests, white gyro noise and bias error integrated over each turn."""
+        if obs.gravity_cov is None or obs.rate_sigma is None:
+            return 0.0
+        out = []
+        for j in sel:
+            b, a = obs.turns.before[j], obs.turns.after[j]
+            t = rates[j][0]
+            dt = step_times(t)
+            span = float(dt.sum())
+            grav = (np.trace(obs.gravity_cov[b]) + np.trace(obs.gravity_cov[a])) / 3
+            white = float(np.mean(obs.rate_sigma**2)) * float(dt @ dt)
+            bias = (np.trace(obs.bias_cov[b]) + np.trace(obs.bias_cov[a])) / 12 * span**2
+            out.append(grav + white + bias)
+        return float(np.mean(out))
+
+    @staticmethod
+    def _covariance(H, Z, m, beta, rates, sel, g0, g1, exact_scale: bool,
+                    noise_var: float = 0.0) -> np.ndarray:
         """(9, 9) covariance of vec(M) from the stacked residuals, linearised at the solution.
 
         The 8 entries m come from the rows of eq. (35) alone; beta minimises the scale
@@ -246,7 +266,7 @@ class GyroRodrigues:
         r_h = Z - H @ m
         s2_h = float(r_h @ r_h) / max(len(Z) // 3 - 8, 1)  # G has rank 1: one equation per turn
         dof_s = max((2 if exact_scale else 3) * len(sel) - 1, 1)
-        s2_s = max(float(r_s @ r_s) / dof_s, 1e-30)
+        s2_s = max(float(r_s @ r_s) / dof_s, noise_var, 1e-30)  # one turn: trust the noise model
         # the estimator: m from eq. (35) alone; beta minimises the scale residuals given m
         cov_m = s2_h * np.linalg.pinv(H.T @ H)
         J_m, J_b = J_s[:, :8], J_s[:, 8]

@@ -55,7 +55,8 @@ class JointMLParams(Params):
     """The gyro's range when known; None: detect clipped turns from the data (left out)."""
     fit_temperature: Literal["auto", "yes", "no"] = "auto"
     """Also fit the bias temperature coefficients k of both triads (auto: when the rests span
-    2 degC or more); otherwise the start's k are applied unchanged."""
+    2 degC or more); otherwise the start's k are applied unchanged. A start with ``sigma_k``
+    (a thermal stage's warm-up fit) enters the fit as a prior measurement of k."""
 
 
 @dataclass(frozen=True)
@@ -114,7 +115,8 @@ class JointProblem:
 
     def __init__(self, rests: Rests, turns: Turns, gravity: float, S_a: np.ndarray, b_a: np.ndarray,
                  M_g: np.ndarray, b_g: np.ndarray, k_a: np.ndarray | None = None,
-                 k_g: np.ndarray | None = None, u0: np.ndarray | None = None, fit_k: bool = False):
+                 k_g: np.ndarray | None = None, u0: np.ndarray | None = None, fit_k: bool = False,
+                 sigma_k: np.ndarray | None = None):
         self.g = float(gravity)
         n = len(rests)
         self.fit_k = fit_k
@@ -144,6 +146,11 @@ class JointProblem:
         cov2 = np.einsum("mia,mij,mjk,mlk,mlb->mab", Eq, Vx, cov_phi, Vx, Eq)
         self.W_t = _whitener(cov2 + 1e-30 * np.eye(2))
         self.n = n
+        # A thermal stage's k (6,) with 1-sigma enters as a prior measurement where sigma > 0.
+        sk = np.full(6, np.inf) if sigma_k is None else np.asarray(sigma_k, float)
+        self.prior = np.flatnonzero(np.isfinite(sk) & (sk > 0)) if fit_k else np.zeros(0, int)
+        self.prior_w = 1.0 / sk[self.prior]
+        self.k0 = np.concatenate([self.k_a, self.k_g])
         k = [self.k_a, self.k_g] if fit_k else []
         self.x0 = np.concatenate([S_a[np.tril_indices(3)], b_a, M_g.ravel(), b_g, *k, np.zeros(2 * n)])
 
@@ -172,7 +179,8 @@ class JointProblem:
         r_a = np.einsum("nij,nj->ni", self.W_a, self.y_a - pred_a)
         r_g = np.einsum("nij,nj->ni", self.W_g, self.y_g - b_g - np.outer(self.dT, k_g))
         r_t = self._turn_res(self._rotations(M_g, b_g, k_g), u)
-        return np.concatenate([r_a.ravel(), r_g.ravel(), r_t.ravel()])
+        r_k = (np.concatenate([k_a, k_g]) - self.k0)[self.prior] * self.prior_w
+        return np.concatenate([r_a.ravel(), r_g.ravel(), r_t.ravel(), r_k])
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         """Dense (N, nm + 2n): analytic except the gyro columns (central differences)."""
@@ -183,7 +191,7 @@ class JointProblem:
         # du/ddelta = (I - u u^T) B / |v|
         du = np.einsum("nij,njk->nik", np.eye(3) - np.einsum("ni,nj->nij", u, u), self.B) / nv[:, None, None]
         P = nm + 2 * n
-        J = np.zeros((3 * n + 3 * n + 2 * m, P))
+        J = np.zeros((3 * n + 3 * n + 2 * m + len(self.prior), P))
         J_a = np.zeros((n, 3, P))
         J_a[:, :, :6] = -self.g * np.einsum("nij,kjl,nl->nik", self.W_a, _LOWER, u)
         J_a[:, :, 6:9] = -self.W_a
@@ -217,7 +225,8 @@ class JointProblem:
                 t[c] += sgn * h
                 res.append(self._turn_res(self._rotations(t[:9].reshape(3, 3), t[9:12], t[12:]), u))
             J_t[:, :, col] = (res[0] - res[1]) / (2 * h)
-        J[6 * n:] = J_t.reshape(2 * m, P)
+        J[6 * n: 6 * n + 2 * m] = J_t.reshape(2 * m, P)
+        J[6 * n + 2 * m + np.arange(len(self.prior)), N_MAIN + self.prior] = self.prior_w
         return J
 
     # ------------------------------------------------------------------ output
@@ -289,8 +298,10 @@ class JointML:
         fit_k = fits_temperature(obs.rests, params.fit_temperature)
         S0, Q = lower_gauge(obs.accel.S)
         M_g0 = Q @ obs.gyro.M  # the gyro follows the accelerometer into the lower gauge
+        sigma_k = np.concatenate([np.asarray(t.details.get("sigma_k", [np.inf] * 3), float)
+                                  for t in (obs.accel, obs.gyro)])
         prob = JointProblem(obs.rests, turns, obs.gravity, S0, obs.accel.b0, M_g0, obs.gyro.b0,
-                            obs.accel.k, obs.gyro.k, fit_k=fit_k)
+                            obs.accel.k, obs.gyro.k, fit_k=fit_k, sigma_k=sigma_k)
         sol = least_squares(prob.residuals, prob.x0, jac=prob.jacobian, method="lm",
                             max_nfev=params.max_nfev, x_scale="jac")
         x = sol.x
@@ -320,7 +331,8 @@ class JointML:
             "inflation": inflation, "iterations": int(sol.nfev), "converged": bool(sol.success),
             "rms_whitened": {"accel": float(np.sqrt(np.mean(r[: 3 * n] ** 2))),
                              "gyro_rest": float(np.sqrt(np.mean(r[3 * n: 6 * n] ** 2))),
-                             "turn": float(np.sqrt(np.mean(r[6 * n:] ** 2)))},
+                             "turn": float(np.sqrt(np.mean(r[6 * n: 6 * n + 2 * len(turns)] ** 2)))},
+            "k_prior_entries": len(prob.prior),
             "turn_angle_deg_max": float(np.degrees(rotation_angle(R)).max()),
             "rests": n, "turns": len(turns), "turns_saturated": len(obs.turns) - len(turns),
             "fitted_temperature_coefficients": fit_k,

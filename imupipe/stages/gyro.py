@@ -83,7 +83,10 @@ def calibrate_gyro(inputs: Mapping[str, pa.Table], params: GyroParams, solver: B
     turns, roll = turn_subset(Turns.from_tables(inputs["turns"], inputs["gyro"], rests.t0_ns), params,
                               gravity)
     bias = rests.need("gyro")
-    obs = GyroObservations(gravity, bias, rests.cov_of_mean("gyro"), turns, rests.temperature, roll)
+    a = rests.need("accel")
+    gravity_cov = rests.cov_of_mean("accel") / np.sum(a * a, axis=1)[:, None, None]
+    obs = GyroObservations(gravity, bias, rests.cov_of_mean("gyro"), turns, rests.temperature, roll,
+                           gravity_cov, rests.white_sigma("gyro"))
     fit = solver.solve(obs)
     k, sigma_k = thermal_k(inputs, "gyro")
     corrected = bias - np.outer(dT(rests.temperature), k)

@@ -115,3 +115,17 @@ def test_joint_ml_fits_temperature_coefficients_of_a_warming_session():
     assert np.abs(g.M @ s.S_gyro - np.eye(3)).max() * 1e6 < GYRO_SHAPE_TOL_PPM
     without = _solve(s, *_start(s), fit_temperature="no")  # the drift then biases the fit
     assert np.abs(without.triads["accel"].b0 - s.b_accel).max() > np.abs(a.b0 - s.b_accel).max()
+
+
+def test_a_thermal_stage_k_enters_as_a_prior():
+    s = make_session(15, n_rests=40, k_accel=K_ACCEL, k_gyro=K_GYRO)
+    accel, gyro = _start(s)
+    tight = 1e-7  # per degC: a warm-up fit far better than the rests can do
+    accel = TriadCalibration("accel", accel.M, accel.b0, K_ACCEL, details={"sigma_k": [tight] * 3})
+    gyro = TriadCalibration("gyro", gyro.M, gyro.b0, K_GYRO, details={"sigma_k": [tight] * 3})
+    fit = _solve(s, accel, gyro)
+    assert fit.details["k_prior_entries"] == 6
+    assert np.abs(fit.k["accel"] - K_ACCEL).max() < 10 * tight
+    assert np.all(fit.sigma_k["gyro"] <= tight * 1.01)
+    loose = _solve(s, *_start(s))  # no prior: k from the rests alone, larger sigma
+    assert np.all(loose.sigma_k["accel"] > fit.sigma_k["accel"])
