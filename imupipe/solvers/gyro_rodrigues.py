@@ -9,11 +9,14 @@ angles (eq. 37).
 ``exact_rotation = True`` replaces the small-angle sum of eq. (29) by the rate
 integrated as a rotation: ``Y~`` becomes ``M^-1 phi(M)``, with ``phi`` the
 rotation vector of the corrected rates, iterated to a fixed point, and the scale
-uses ``tan(chi/2)``; turns of tens of degrees then add no bias.
+fits gravity after each turn to gravity before carried through it by the gyro
+(Rodrigues' relation for finite rotations); turns of tens of degrees, or not about
+a fixed axis, then add no bias.
 """
 
 from __future__ import annotations
 
+import warnings
 from typing import ClassVar
 
 import numpy as np
@@ -133,7 +136,7 @@ class GyroRodrigues:
         # fixed point M = F(M) (exact mode), with Anderson acceleration: large turns converge slowly
         M, state = step(np.eye(3), None)
         xs, fs = [], []
-        passes = 0
+        passes, converged = 0, not params.exact_rotation
         for passes in range(1, params.iterations if params.exact_rotation else 1):
             M_next, state_next = step(M, state[4])
             f = (M_next - M).ravel()
@@ -141,7 +144,7 @@ class GyroRodrigues:
             fs.append(f)
             xs, fs = xs[-4:], fs[-4:]
             if np.abs(f).max() < params.tolerance:
-                M, state = M_next, state_next
+                M, state, converged = M_next, state_next, True
                 break
             if len(fs) > 1:
                 dF = np.column_stack([fs[i + 1] - fs[i] for i in range(len(fs) - 1)])
@@ -153,6 +156,9 @@ class GyroRodrigues:
             state = state_next
         H, Z, m, M_hat, beta, sel = state
         M = beta * M_hat
+        if not converged:
+            warnings.warn(f"gyro: the exact-rotation fixed point did not settle in {params.iterations} "
+                          f"passes (last change {np.abs(f).max():.1e}); raise `iterations`", stacklevel=2)
 
         cov = np.zeros((12, 12))
         cov[:9, :9] = self._covariance(H, Z, m, beta, rates, sel, g0, g1,
@@ -163,6 +169,7 @@ class GyroRodrigues:
         details = {
             "n_turns_used": len(use), "n_turns": len(obs.turns),
             "exact_rotation": params.exact_rotation, "beta": float(beta), "passes": passes + 1,
+            "converged": converged,
             "scale_from": "roll turn (eq. 37)" if obs.roll_turn is not None else "all turns",
             "max_turn_deg": float(np.degrees(np.linalg.norm(
                 rotations_of(used, M, True), axis=1)).max()),

@@ -157,7 +157,7 @@ def test_gyro_scale_from_the_detected_roll_turn(session):
     assert cal.details["scale_from"] == "roll turn (eq. 37)"
     roll = session["truth"].segments(label="roll_turn")[0]
     turn_t = Turns.from_tables(session["seg"]["turns"], session["d"]["gyro"]).t
-    j = [i for i, t in enumerate(turn_t) if len(t) and t[0] <= roll["t_start_s"] + 1 <= t[-1]][0]
+    j = next(i for i, t in enumerate(turn_t) if len(t) and t[0] <= roll["t_start_s"] + 1 <= t[-1])
     assert cal.details["roll_turn"] is not None and abs(cal.details["roll_turn"] - j) <= 2
     assert np.abs(cal.M @ true.S - np.eye(3)).max() * 1e6 < GYRO_M_TOL_PPM
     assert_within_sigma(cal, true)
