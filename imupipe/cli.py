@@ -56,6 +56,10 @@ def _parser() -> argparse.ArgumentParser:
                     help='an omitted-physics effect, e.g. --effect \'lever_arm={"r_m": [0.05, 0, 0]}\'')
     sp.add_argument("--param", action="append", default=[], metavar="KEY=JSON",
                     help="override a protocol parameter, e.g. --param n_positions=60")
+    sp.add_argument("--imu", action="append", default=[], metavar="KEY=JSON",
+                    help="override a sensor-model field, e.g. --imu rate_hz=200")
+    sp.add_argument("--env", action="append", default=[], metavar="KEY=JSON",
+                    help="override the environment, e.g. --env gravity_m_s2=9.80665 --env dip_deg=65")
     sp.add_argument("--seed", type=int, default=0)
     sp.add_argument("--out", type=Path, default=None, help="output .mcap or .csv (default: <protocol>.mcap)")
     common(sp)
@@ -139,8 +143,10 @@ def _cmd_simulate(args) -> int:
 
     out = args.out or Path(f"{args.protocol}.mcap")
     params = _parse_assignments("--param", args.param, "n_positions=60")
+    imu = _parse_assignments("--imu", args.imu, "rate_hz=200")
+    env = _parse_assignments("--env", args.env, "gravity_m_s2=9.80665")
     for path in simulate(args.protocol, effects=_parse_effects(args.effect), seed=args.seed, out=out,
-                         quiet=args.quiet, params=params):
+                         quiet=args.quiet, params=params, imu=imu, env=env):
         print(path)
     return 0
 

@@ -173,7 +173,7 @@ def triads_from_table(table: pa.Table) -> list[TriadCalibration]:
 def _jsonable(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
         return obj.tolist()
-    if isinstance(obj, (np.floating, np.integer)):
+    if isinstance(obj, np.generic):  # numpy scalars, np.bool_ included
         return obj.item()
     if isinstance(obj, Mapping):
         return {str(k): _jsonable(v) for k, v in obj.items()}

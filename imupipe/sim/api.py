@@ -20,7 +20,7 @@ from pydantic import ValidationError
 
 from .. import schemas
 from ..components import Recording
-from ..errors import ConfigError
+from ..errors import ConfigError, describe_validation
 from ..io import atomic_path, write_text
 from ..progress import progress
 from ..writers.mcap import write_mcap
@@ -91,7 +91,7 @@ def simulate_arrays(protocol: str = "standard", effects: Mapping[str, Mapping[st
     model = _model(imu, np.random.default_rng([seed, 2]))
     if plan.thermal:
         model = model.model_copy(update={"thermal": model.thermal.model_copy(update=plan.thermal)})
-    env = env if isinstance(env, Environment) else Environment(**(env or {}))
+    env = _environment(env)
     out = engine.run(plan.trajectory, plan.windows, model, env, resolved, seed)
     truth = make_truth(_truth_dict(protocol, params, seed, model, env, resolved, plan, out))
     truth.data["calibration"] = truth.calibration.to_dict()  # the same, as calibration.json has it
@@ -99,10 +99,12 @@ def simulate_arrays(protocol: str = "standard", effects: Mapping[str, Mapping[st
 
 
 def simulate(protocol: str, effects: dict[str, dict], seed: int, out: Path, quiet: bool,
-             params: Mapping[str, Any] | None = None) -> list[Path]:
+             params: Mapping[str, Any] | None = None, imu: Mapping[str, Any] | None = None,
+             env: Mapping[str, Any] | None = None) -> list[Path]:
     """Write the simulated session to ``out`` (``.mcap`` or ``.csv``) and ``<out>.truth.json``.
 
-    ``params`` overrides the protocol's parameters (e.g. ``{"n_positions": 60}``).
+    ``params`` overrides the protocol's parameters (e.g. ``{"n_positions": 60}``), ``imu``
+    the sensor model's fields, ``env`` the environment's (e.g. ``{"gravity_m_s2": 9.80665}``).
     """
     out = Path(out)
     suffix = out.suffix.lower()
@@ -110,7 +112,7 @@ def simulate(protocol: str, effects: dict[str, dict], seed: int, out: Path, quie
         raise ConfigError(f"{out}: the simulator writes .mcap or .csv; choose one of those suffixes")
     with progress(quiet) as p:
         task = p.add_task(f"simulating {protocol}", total=2)
-        recording, truth = simulate_recording(protocol, effects, seed, **dict(params or {}))
+        recording, truth = simulate_recording(protocol, effects, seed, imu=imu, env=env, **dict(params or {}))
         p.advance(task)
         if suffix == ".mcap":
             write_mcap(out, recording)
@@ -144,9 +146,17 @@ def _model(imu: ImuModel | Mapping[str, Any] | None, rng: np.random.Generator) -
         return base
     try:
         return ImuModel(**{**dict(base), **dict(imu)})
-    except (ValidationError, TypeError) as exc:
-        raise ConfigError(f"imu model: {str(exc).splitlines()[-1].strip()}; fields: "
-                          f"{', '.join(ImuModel.model_fields)}") from None
+    except ValidationError as exc:
+        raise ConfigError(f"imu model: {describe_validation(exc, ImuModel)}") from None
+
+
+def _environment(env: Environment | Mapping[str, Any] | None) -> Environment:
+    if isinstance(env, Environment):
+        return env
+    try:
+        return Environment(**(env or {}))
+    except ValidationError as exc:
+        raise ConfigError(f"environment: {describe_validation(exc, Environment)}") from None
 
 
 def _recording(out: engine.SimOutput, source: str) -> Recording:

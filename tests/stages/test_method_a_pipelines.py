@@ -47,7 +47,11 @@ def test_pipeline_runs_and_recovers(pipeline, session_csv, tmp_path):
     acc = cal["accel"].M @ truth["accel"].S
     assert np.abs(acc / acc[0, 0] - np.eye(3)).max() * 1e6 < 200  # frame and shape, scale aside
     assert np.abs(np.diag(acc) - 1).max() * 1e6 < ACC_SHAPE_TOL_PPM
-    assert cal["mag"].details["normalised"] is True
+    mag = cal["mag"]  # no field_T: tesla at the sensor's own nominal scale (det M = 1)
+    assert mag.details["field_source"].startswith("ellipsoid mean radius")
+    assert abs(abs(np.linalg.det(mag.M)) - 1) < 1e-9
+    mag_shape = mag.M @ truth["mag"].S
+    assert np.abs(mag_shape / np.cbrt(np.linalg.det(mag_shape)) - np.eye(3)).max() < 2e-3  # 0.2 %
 
 
 @pytest.mark.parametrize("missing", ["mag", "temperature"])
