@@ -245,7 +245,9 @@ class GyroObservations:
     ``gravity`` (n, 3) corrected unit specific force at every rest (instrument
     frame, from the accelerometer calibration); ``bias`` (n, 3) raw gyro mean
     at every rest, rad/s; ``bias_cov`` (n, 3, 3) covariance of those means;
-    ``turns``: the raw gyro during each motion; ``roll_turn``: index into
+    ``turns``: the raw gyro during each motion (rests and turns with the thermal
+    bias ``k (T - 25)`` already removed when it is known, so the ``b0`` a solver
+    returns is the bias at 25 degC); ``roll_turn``: index into
     ``turns`` of the paper's scale turn (eq. 37), or None to scale from all.
     Optional noise model: ``gravity_cov`` (n, 3, 3) covariance of each unit
     gravity; ``rate_sigma`` (3,) white noise of one gyro sample, rad/s.

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from imupipe.observations import Rests, Turns
-from imupipe.solvers.rotation_integration import compose, quat_exp, quat_to_matrix
+from imupipe.rotations import compose, quat_exp, quat_to_matrix, random_rotation
 
 G = 9.80665
 
@@ -33,11 +33,6 @@ class Session:
     sigma_accel: float
     sigma_gyro: float
     gravity_body: np.ndarray  # (n, 3) true unit gravity at each rest, instrument frame
-
-
-def _random_rotation(rng: np.random.Generator) -> np.ndarray:
-    q = rng.normal(size=4)
-    return quat_to_matrix(q / np.linalg.norm(q))
 
 
 def make_session(seed: int, n_rests: int = 60, rate_hz: float = 100.0, rest_s: float = 4.0,
@@ -65,7 +60,7 @@ def make_session(seed: int, n_rests: int = 60, rate_hz: float = 100.0, rest_s: f
     n_rest = round(rest_s * rate_hz)
     k = round(turn_s * rate_hz)
     sub = 16
-    C = _random_rotation(rng)  # body -> world
+    C = random_rotation(rng)  # body -> world
     g_world = np.array([0.0, 0.0, G])  # specific force at rest points up
     up, t_s, t_e = [], [], []
     turn_t, turn_w, t = [], [], 0.0

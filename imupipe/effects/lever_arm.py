@@ -7,7 +7,7 @@ import numpy as np
 from pydantic import Field
 
 from ..components import Params
-from ..sim.rotations import skew
+from ..rotations import skew
 from ._base import EffectBase, Vec3
 
 

@@ -61,9 +61,7 @@ class LocalExecutor:
         # running can deadlock; spawned workers import ``fn`` by name instead
         context = multiprocessing.get_context("spawn")
         unfinished = _pool(fn, items, list(range(len(items))), jobs, results, on_result, context)
-        for (
-            i
-        ) in unfinished:  # a worker died: rerun the rest one per pool, so only the culprit fails
+        for i in unfinished:  # a worker died: rerun the rest one per pool, so only the culprit fails
             _pool(fn, items, [i], 1, results, on_result, context, last_try=True)
         return results
 

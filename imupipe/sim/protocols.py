@@ -18,7 +18,7 @@ from pydantic import Field, ValidationError
 
 from ..components import Params
 from ..errors import ConfigError, describe_validation
-from .rotations import align, matrix_to_rotvec, random_rotation
+from ..rotations import align, matrix_to_rotvec, random_rotation
 from .trajectory import Rest, Rotate, Segment, Trajectory, Translate
 
 UP = np.array([0.0, 0.0, 1.0])

@@ -16,7 +16,7 @@ import numpy as np
 from ..components import Params
 from ..errors import SolverError
 from ..observations import EllipsoidObservations, TriadFit
-from ._rotation import frame_from_up_vectors, nearest_rotation
+from ..rotations import frame_from_up_vectors, nearest_rotation
 
 MIN_POSITIONS = 12  # 9 unknowns + margin: below this the fit is not trustworthy
 MIN_COVERAGE = 0.35  # smallest eigenvalue of the direction scatter (0.333 = uniform sphere)

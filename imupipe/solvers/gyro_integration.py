@@ -12,7 +12,7 @@ imupipe parametrises the nine constants as the correction matrix ``M``
 ``M`` starts at the identity. Gravity directions come from the corrected
 accelerometer, so ``M`` also carries the gyro-to-accelerometer alignment: the
 gyro ends up in the accelerometer's frame. Rotations are integrated exactly
-(``rotation_integration``), all turns at once.
+(``imupipe.rotations``), all turns at once.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from scipy.optimize import least_squares
 from ..components import Params
 from ..errors import SolverError
 from ..observations import GyroObservations, TriadFit, Turns
-from .rotation_integration import pad_turns, turn_rotations
+from ..rotations import carry, pad_turns, turn_rotations
 from .triad_covariance import gauss_newton_cov
 
 MIN_TURNS = 5  # each turn gives two equations for nine constants
@@ -132,8 +132,7 @@ def gravity_residuals(M: np.ndarray, b: np.ndarray, rate: np.ndarray, dt: np.nda
 
     ``rate`` (m, k, 3) raw rad/s, ``dt`` (m, k) s, ``g_*`` (m, 3) unit vectors.
     """
-    R = turn_rotations((rate - b) @ M.T, dt)
-    return np.einsum("mji,mj->mi", R, g_before) - g_after
+    return carry(turn_rotations((rate - b) @ M.T, dt), g_before) - g_after
 
 
 class GyroIntegration:

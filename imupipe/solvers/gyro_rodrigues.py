@@ -4,7 +4,8 @@ Each turn moves the corrected gravity from ``g0`` to ``g1``; the half finite
 rotation ``Y`` measured by the corrected gyro must satisfy ``G Y = 0`` with
 ``G = C C^T + S S^T - I`` (eq. 31). With ``Y ~ M Y~`` and ``M00 = 1`` this is
 linear in the other 8 entries of M (eqs. 33-36); the scale comes from the turn
-angles (eq. 37).
+angles (eq. 37). A turn's bias is the mean of the rests before and after it; the
+returned ``b0`` is their mean over the turns the fit used.
 
 ``exact_rotation = True`` replaces the small-angle sum of eq. (29) by the rate
 integrated as a rotation: ``Y~`` becomes ``M^-1 phi(M)``, with ``phi`` the
@@ -24,7 +25,14 @@ import numpy as np
 from ..components import Params
 from ..errors import SolverError
 from ..observations import GyroObservations, TriadFit
-from ._rotation import carry_gravity, integrate_rotations, rotation_vectors, step_times
+from ..rotations import (
+    carry,
+    hold_intervals,
+    pad_turns,
+    quat_to_rotvec,
+    turn_quaternions,
+    turn_rotations,
+)
 
 MIN_TURNS = 10  # 8 unknowns, one informative equation per turn
 
@@ -45,23 +53,47 @@ class GyroRodriguesParams(Params):
     max_scale_turn_deg: float = 60.0
 
 
-def turn_rates(obs: GyroObservations) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per turn: times (k,) s and raw rates minus the mean bias of the rests around it (k, 3)."""
-    out = []
-    for j in range(len(obs.turns)):
-        bias = 0.5 * (obs.bias[obs.turns.before[j]] + obs.bias[obs.turns.after[j]])
-        out.append((obs.turns.t[j], obs.turns.gyro[j] - bias))
-    return out
+Rates = tuple[np.ndarray, np.ndarray]  # padded turns: rates (m, k, 3) rad/s, hold intervals (m, k) s
 
 
-def rotations_of(rates: list[tuple[np.ndarray, np.ndarray]], M: np.ndarray,
-                 exact: bool) -> np.ndarray:
+def turn_bias(obs: GyroObservations) -> np.ndarray:
+    """(m, 3) rad/s: each turn's bias, the mean of the rests before and after it."""
+    return 0.5 * (obs.bias[obs.turns.before] + obs.bias[obs.turns.after])
+
+
+def turn_rates(obs: GyroObservations) -> Rates:
+    """Padded turns: raw rates minus each turn's bias, and each sample's hold interval."""
+    rate, dt = pad_turns(obs.turns.t, obs.turns.gyro, hold_intervals)
+    return rate - turn_bias(obs)[:, None, :], dt
+
+
+def take(rates: Rates, index) -> Rates:
+    """The turns at ``index`` of padded ``rates``."""
+    return rates[0][index], rates[1][index]
+
+
+def rotations_of(rates: Rates, M: np.ndarray, exact: bool) -> np.ndarray:
     """Rotation vectors (m, 3) rad of the corrected rates ``w @ M.T`` of each motion:
     integrated as rotations (exact) or summed as in eq. (29)."""
+    rate, dt = rates
     if exact:
-        return rotation_vectors(integrate_rotations([t for t, _ in rates],
-                                                    [w @ M.T for _, w in rates]))
-    return np.array([step_times(t) @ (w @ M.T) for t, w in rates]).reshape(-1, 3)
+        return quat_to_rotvec(turn_quaternions(rate @ M.T, dt))
+    return np.einsum("mk,mki->mi", dt, rate @ M.T)
+
+
+def carried_gravity(rates: Rates, M: np.ndarray, g0: np.ndarray) -> np.ndarray:
+    """(m, 3) gravity before each turn carried through the turn by the corrected rates."""
+    return carry(turn_rotations(rates[0] @ M.T, rates[1]), g0)
+
+
+def bias_of_turns(obs: GyroObservations, turns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The bias the fit used (3,) rad/s: the mean over ``turns`` of each turn's bias (the
+    rests before and after it), and its (3, 3) covariance from the scatter of the rests."""
+    weight = np.zeros(len(obs.bias))
+    np.add.at(weight, obs.turns.before[turns], 0.5 / len(turns))
+    np.add.at(weight, obs.turns.after[turns], 0.5 / len(turns))
+    cov = (weight @ weight) * np.cov(obs.bias.T) if len(obs.bias) > 1 else np.full((3, 3), np.nan)
+    return weight @ obs.bias, cov
 
 
 def gibbs_of(phi: np.ndarray, exact: bool) -> np.ndarray:
@@ -98,7 +130,7 @@ class GyroRodrigues:
 
     name = "gyro_rodrigues"
     kind = "gyro"
-    version = "1"
+    version = "2"  # 2: b0 from the rests around the turns used
     params: ClassVar[type[Params]] = GyroRodriguesParams
 
     def solve(self, obs: GyroObservations, params: GyroRodriguesParams) -> TriadFit:
@@ -118,7 +150,7 @@ class GyroRodrigues:
         S = (g0 + g1) / np.linalg.norm(g0 + g1, axis=1, keepdims=True).clip(1e-300)
         Gs = np.einsum("ki,kj->kij", C, C) + np.einsum("ki,kj->kij", S, S) - np.eye(3)  # Eq. (31)
 
-        used = [rates[j] for j in use]
+        used = take(rates, use)
         Gu = Gs[use]
 
         def step(M: np.ndarray, beta: float | None):
@@ -164,8 +196,7 @@ class GyroRodrigues:
         cov[:9, :9] = self._covariance(H, Z, m, beta, rates, sel, g0, g1,
                                         params.exact_rotation or obs.roll_turn is not None,
                                         self._scale_noise(obs, rates, sel))
-        b0 = obs.bias.mean(axis=0)
-        cov[9:, 9:] = np.cov(obs.bias.T) / len(obs.bias) if len(obs.bias) > 1 else np.nan
+        b0, cov[9:, 9:] = bias_of_turns(obs, np.union1d(use, sel))
         details = {
             "n_turns_used": len(use), "n_turns": len(obs.turns),
             "exact_rotation": params.exact_rotation, "beta": float(beta), "passes": passes + 1,
@@ -186,7 +217,7 @@ class GyroRodrigues:
         exact = params.exact_rotation
         sel = [obs.roll_turn] if obs.roll_turn is not None else list(use)
         if obs.roll_turn is not None or not exact or beta_prev is None:
-            phis = rotations_of([rates[j] for j in sel], M_hat, True)
+            phis = rotations_of(take(rates, sel), M_hat, True)
         if obs.roll_turn is None and not exact:
             small = np.degrees(np.linalg.norm(phis, axis=1)) <= params.max_scale_turn_deg
             if small.sum() < 1:
@@ -194,7 +225,7 @@ class GyroRodrigues:
                                   "scale; give the roll turn (eq. 37) or record small turns")
             sel = [j for j, keep in zip(sel, small, strict=True) if keep]
             phis = phis[small]
-        chosen = [rates[j] for j in sel]
+        chosen = take(rates, sel)
         if obs.roll_turn is not None and (beta_prev is None or not exact):
             d_gamma = np.arccos(np.clip(g0[sel[0]] @ g1[sel[0]], -1, 1))
             beta = float(d_gamma / np.linalg.norm(phis[0]))  # Eq. (37)
@@ -214,8 +245,7 @@ class GyroRodrigues:
         def resid(b: float) -> np.ndarray:
             # gravity before, carried by the scaled rates as a finite rotation, vs gravity after:
             # Rodrigues' relation without tan(chi/2), well-conditioned at any turn angle
-            q = integrate_rotations([t for t, _ in chosen], [w @ (b * M_hat).T for _, w in chosen])
-            return (carry_gravity(q, g0[sel]) - g1[sel]).ravel()
+            return (carried_gravity(chosen, b * M_hat, g0[sel]) - g1[sel]).ravel()
 
         for _ in range(2 if beta_prev is not None else 4):
             r0 = resid(beta)
@@ -230,17 +260,17 @@ class GyroRodrigues:
         gravity noise at both rests, white gyro noise and bias error integrated over each turn."""
         if obs.gravity_cov is None or obs.rate_sigma is None:
             return 0.0
-        out = []
-        for j in sel:
-            b, a = obs.turns.before[j], obs.turns.after[j]
-            t = rates[j][0]
-            dt = step_times(t)
-            span = float(dt.sum())
-            grav = (np.trace(obs.gravity_cov[b]) + np.trace(obs.gravity_cov[a])) / 3
-            white = float(np.mean(obs.rate_sigma**2)) * float(dt @ dt)
-            bias = (np.trace(obs.bias_cov[b]) + np.trace(obs.bias_cov[a])) / 12 * span**2
-            out.append(grav + white + bias)
-        return float(np.mean(out))
+        b, a = obs.turns.before[sel], obs.turns.after[sel]
+        dt = rates[1][sel]
+        span = dt.sum(axis=1)
+
+        def trace(cov: np.ndarray) -> np.ndarray:
+            return np.trace(cov, axis1=1, axis2=2)
+
+        grav = (trace(obs.gravity_cov[b]) + trace(obs.gravity_cov[a])) / 3
+        white = float(np.mean(obs.rate_sigma**2)) * np.sum(dt * dt, axis=1)
+        bias = (trace(obs.bias_cov[b]) + trace(obs.bias_cov[a])) / 12 * span**2
+        return float(np.mean(grav + white + bias))
 
     @staticmethod
     def _covariance(H, Z, m, beta, rates, sel, g0, g1, exact_scale: bool,
@@ -251,14 +281,13 @@ class GyroRodrigues:
         residuals (the gravity carried through the scale turns, exact; eq. 38 small-angle)
         given m, so it inherits m's uncertainty through d beta / d m plus its own.
         """
-        chosen = [rates[j] for j in sel]
+        chosen = take(rates, sel)
         a, b = g0[sel], g1[sel]
 
         def scale_resid(x: np.ndarray) -> np.ndarray:
             Mx = x[8] * np.array([[1.0, x[0], x[1]], [x[2], x[3], x[4]], [x[5], x[6], x[7]]])
             if exact_scale:
-                q = integrate_rotations([t for t, _ in chosen], [w @ Mx.T for _, w in chosen])
-                return (carry_gravity(q, a) - b).ravel()
+                return (carried_gravity(chosen, Mx, a) - b).ravel()
             phis = rotations_of(chosen, Mx, False)
             return ((b - a) + np.cross(0.5 * phis, a + b)).ravel()  # Eq. (38)
 

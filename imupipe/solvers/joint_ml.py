@@ -36,8 +36,8 @@ from ..components import Params
 from ..errors import SolverError
 from ..models import T_REF_C, TriadCalibration
 from ..observations import Rests, TriadFit, Turns
+from ..rotations import carry, pad_turns, rotation_angle, skew, turn_rotations
 from .gyro_integration import drop_saturated
-from .rotation_integration import pad_turns, rotation_angle, turn_rotations
 from .triad_covariance import shape_basis
 
 N_MAIN = 21  # S_a (6), b_a (3), M_g (9), b_g (3); then k_a, k_g (6) when fitted
@@ -140,8 +140,8 @@ class JointProblem:
         sum_dt2 = np.sum(self.dt**2, axis=1)
         cov_phi = sum_dt2[:, None, None] * (M_g @ sigma_g @ M_g.T)
         Rs = self._rotations(M_g, b_g, self.k_g)
-        v = np.einsum("mji,mj->mi", Rs, self.u0[self.p])
-        Vx = _skew(v)
+        v = carry(Rs, self.u0[self.p])
+        Vx = skew(v)
         Eq = self.B[self.q]
         cov2 = np.einsum("mia,mij,mjk,mlk,mlb->mab", Eq, Vx, cov_phi, Vx, Eq)
         self.W_t = _whitener(cov2 + 1e-30 * np.eye(2))
@@ -169,7 +169,7 @@ class JointProblem:
         return turn_rotations((self.rate - bias[:, None, :]) @ M_g.T, self.dt)
 
     def _turn_res(self, R: np.ndarray, u: np.ndarray) -> np.ndarray:
-        d = np.einsum("mji,mj->mi", R, u[self.p]) - u[self.q]
+        d = carry(R, u[self.p]) - u[self.q]
         return np.einsum("mab,mib,mi->ma", self.W_t, self.B[self.q], d)
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
@@ -248,12 +248,6 @@ class JointProblem:
         C = np.linalg.inv(J.T @ J)[: self.nm, : self.nm]
         G = self.output_jacobian(x)
         return G @ C @ G.T
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    z = np.zeros(len(v))
-    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], -1), np.stack([v[:, 2], z, -v[:, 0]], -1),
-                     np.stack([-v[:, 1], v[:, 0], z], -1)], -2)
 
 
 def lower_gauge(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -15,7 +15,7 @@ import numpy as np
 from ..components import Params
 from ..errors import SolverError
 from ..observations import EllipsoidObservations, TriadFit
-from ._rotation import nearest_rotation
+from ..rotations import nearest_rotation
 from .ellipsoid_cholesky import (
     MIN_COVERAGE,
     MIN_POSITIONS,

@@ -21,7 +21,7 @@ from ..components import Params, Stage
 from ..errors import ConfigError
 from ..models import Calibration, TriadCalibration
 from ..observations import Rests, Turns
-from ..solvers.rotation_integration import pad_turns, rotation_angle, turn_rotations
+from ..rotations import carry, pad_turns, rotation_angle, turn_rotations
 
 
 def control_errors(accel: TriadCalibration, gyro: TriadCalibration, rests: Rests,
@@ -40,7 +40,7 @@ def control_errors(accel: TriadCalibration, gyro: TriadCalibration, rests: Rests
     T_turn = 0.5 * (T[turns.before] + T[turns.after])
     corrected = (rate - gyro.bias(T_turn)[:, None, :]) @ gyro.M.T
     R = turn_rotations(corrected * (dt[..., None] > 0), dt)
-    predicted = np.einsum("mji,mj->mi", R, g[turns.before])  # Eq. (2.16)
+    predicted = carry(R, g[turns.before])  # Eq. (2.16)
     cos = np.clip(np.sum(predicted * g[turns.after], axis=1), -1.0, 1.0)
     return np.arccos(cos), rotation_angle(R)
 

@@ -1,8 +1,10 @@
 """Gyroscope calibration from rests and the turns between them (method A: eqs. 26-37).
 
 Gravity at each rest comes from the calibrated accelerometer, so the gyro ends up
-in the accelerometer's instrument frame. The bias at T_ref is the mean over the
-rests of the rest gyro means minus ``k (T - 25)`` when the thermal stage is wired.
+in the accelerometer's instrument frame. With the thermal stage wired, the rest
+means and the turns' rates are handed to the solver with ``k (T - 25)`` removed
+(a turn at the mean temperature of its two rests), so the bias the solver returns,
+by whatever rule it has, is the bias at T_ref.
 Residuals: per rest, the measured gyro mean vs the bias model; per turn, gravity
 after the turn vs gravity before rotated by the calibrated gyro.
 """
@@ -18,8 +20,9 @@ from pydantic import Field
 from ..components import BoundSolver, Params, Stage
 from ..models import triads_to_table
 from ..observations import GyroObservations, Rests, Turns
-from ..solvers._rotation import integrate_rotations
+from ..rotations import carry, hold_intervals, pad_turns, turn_rotations
 from ._calib_common import (
+    add_thermal_variance,
     concat_residuals,
     dT,
     model_T,
@@ -85,47 +88,41 @@ def calibrate_gyro(inputs: Mapping[str, pa.Table], params: GyroParams, solver: B
     bias = rests.need("gyro")
     a = rests.need("accel")
     gravity_cov = rests.cov_of_mean("accel") / np.sum(a * a, axis=1)[:, None, None]
-    obs = GyroObservations(gravity, bias, rests.cov_of_mean("gyro"), turns, rests.temperature, roll,
-                           gravity_cov, rests.white_sigma("gyro"))
-    fit = solver.solve(obs)
     k, sigma_k = thermal_k(inputs, "gyro")
-    corrected = bias - np.outer(dT(rests.temperature), k)
-    b0 = corrected.mean(axis=0)
-    sd_b0 = corrected.std(axis=0, ddof=1) / np.sqrt(len(corrected)) if len(corrected) > 1 \
-        else np.full(3, np.nan)
-    sd_b0 = np.sqrt(sd_b0**2 + (np.nanmean(dT(rests.temperature)) * sigma_k) ** 2)
+    obs = GyroObservations(gravity, bias - np.outer(dT(rests.temperature), k),
+                           rests.cov_of_mean("gyro"), without_thermal(turns, rests.temperature, k),
+                           rests.temperature, roll, gravity_cov, rests.white_sigma("gyro"))
+    fit = add_thermal_variance(solver.solve(obs), rests.temperature, sigma_k)
     cal = fit.to_calibration("gyro", solver.solver.name, k=k, sigma_k=sigma_k, extra={
-        "sigma_b0": sd_b0.tolist(), "noise": noise_details(rests, "gyro"),
-        "roll_turn": roll,
+        "noise": noise_details(rests, "gyro"), "roll_turn": roll,
     })
-    cal = type(cal)("gyro", cal.M, b0, cal.k, cal.T_ref_C, cal.solver, cal.details)
     mid = 0.5 * (rests.t_start_s + rests.t_end_s)
     sigma = np.sqrt(np.diagonal(rests.cov_of_mean("gyro"), axis1=1, axis2=2))
     res_rest = residual_table("calibrate_gyro", "gyro", "rest", mid, rests.temperature, bias,
                               cal.bias(model_T(rests.temperature)), sigma)
     # per turn: gravity after vs gravity before carried through the calibrated rotation
-    ws = [(w - 0.5 * (bias[b] + bias[a])) @ cal.M.T
-          for w, b, a in zip(turns.gyro, turns.before, turns.after, strict=True)]
-    q = integrate_rotations(list(turns.t), ws)
+    rate, dt = pad_turns(turns.t, turns.gyro, hold_intervals)
+    rate = (rate - 0.5 * (bias[turns.before] + bias[turns.after])[:, None, :]) @ cal.M.T
     g0, g1 = gravity[turns.before], gravity[turns.after]
-    pred = np.array([rotate_inverse(qi, gi) for qi, gi in zip(q, g0, strict=True)]).reshape(-1, 3)
+    pred = carry(turn_rotations(rate, dt), g0)
     res_turn = residual_table("calibrate_gyro", "gyro", "turn",
                               np.array([0.5 * (t[0] + t[-1]) for t in turns.t]),
                               np.full(len(turns), np.nan), g1, pred, None)
     return {"calibration": triads_to_table([cal]), "residuals": concat_residuals([res_rest, res_turn])}
 
 
-def rotate_inverse(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """A world-fixed vector seen in the body after the body turned by ``q``: ``R(q)^T v``."""
-    w, x, y, z = q
-    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                  [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                  [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-    return R.T @ v
+def without_thermal(turns: Turns, T: np.ndarray, k: np.ndarray) -> Turns:
+    """``turns`` with ``k (T - 25)`` removed from the rates, each turn at the mean temperature
+    of its two rests ``T`` (n,) degC; the turns themselves when ``k`` is zero."""
+    if not np.any(k):
+        return turns
+    d = 0.5 * (dT(T)[turns.before] + dT(T)[turns.after])
+    return Turns(turns.before, turns.after, turns.t,
+                 tuple(w - di * k for w, di in zip(turns.gyro, d, strict=True)))
 
 
 STAGE = Stage(
-    name="calibrate_gyro", version="1", func=calibrate_gyro,
+    name="calibrate_gyro", version="2", func=calibrate_gyro,
     inputs={"rests": "rests", "turns": "turns", "gyro": "gyro", "accel": "calibration",
             "thermal": "calibration"},
     outputs={"calibration": "calibration", "residuals": "residuals"}, params=GyroParams,

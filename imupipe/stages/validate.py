@@ -21,7 +21,7 @@ from .. import schemas
 from ..components import BoundSolver, Params, Stage
 from ..models import TriadCalibration
 from ..observations import Rests, Turns
-from ..solvers._rotation import carry_gravity, integrate_rotations
+from ..rotations import carry, hold_intervals, pad_turns, quat_to_matrix, turn_quaternions
 from ..solvers.gyro_rodrigues import angle_error, rodrigues_error
 from ._calib_common import model_T, need_triad
 
@@ -45,16 +45,15 @@ def turn_errors(rests: Rests, turns: Turns, acc: TriadCalibration | None,
     g = g / np.linalg.norm(g, axis=1, keepdims=True)
     M = gyr.M if gyr is not None else np.eye(3)
     bias = rests.need("gyro")
-    ws = [(w - 0.5 * (bias[b] + bias[c])) @ M.T
-          for w, b, c in zip(turns.gyro, turns.before, turns.after, strict=True)]
-    q = integrate_rotations(list(turns.t), ws)
+    rate, dt = pad_turns(turns.t, turns.gyro, hold_intervals)
+    q = turn_quaternions((rate - 0.5 * (bias[turns.before] + bias[turns.after])[:, None, :]) @ M.T, dt)
     q = q * np.where(q[:, :1] < 0, -1.0, 1.0)
     Y = q[:, 1:] / np.where(np.abs(q[:, :1]) > 1e-12, q[:, :1], 1e-12)  # e tan(chi/2)
     g0, g1 = g[turns.before], g[turns.after]
     E = np.linalg.norm(rodrigues_error(g0, g1, Y), axis=1)
     eps = angle_error(g0, g1, Y)
     tilt = np.arccos(np.clip(np.sum(g0 * g1, axis=1), -1, 1))
-    carried = carry_gravity(q, g0)
+    carried = carry(quat_to_matrix(q), g0)
     grav = np.arctan2(np.linalg.norm(np.cross(carried, g1), axis=1), np.sum(carried * g1, axis=1))
     return Y, E, eps, tilt, grav
 

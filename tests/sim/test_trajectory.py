@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from imupipe.rotations import angle_between, exp_so3, random_rotation
 from imupipe.sim.environment import Environment
-from imupipe.sim.rotations import angle_between, exp_so3, random_rotation
 from imupipe.sim.trajectory import Rest, Rotate, Trajectory, Translate
 
 G = Environment().g

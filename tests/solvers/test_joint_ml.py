@@ -13,8 +13,8 @@ from method_b_synth import G, make_session
 
 from imupipe.errors import SolverError
 from imupipe.models import TriadCalibration
+from imupipe.rotations import quat_to_matrix
 from imupipe.solvers.joint_ml import JointML, JointMLParams, JointObservations, JointProblem
-from imupipe.solvers.rotation_integration import quat_to_matrix
 
 ACC_BIAS_TOL_MG = 0.2
 ACC_SHAPE_TOL_PPM = 200.0

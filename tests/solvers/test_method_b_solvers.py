@@ -8,13 +8,7 @@ from method_b_synth import G, make_session
 
 from imupipe.errors import SolverError
 from imupipe.observations import EllipsoidObservations, GyroObservations, Turns
-from imupipe.solvers.ellipsoid_svd import EllipsoidSVD, EllipsoidSVDParams, fit_quadric
-from imupipe.solvers.gyro_integration import (
-    GyroIntegration,
-    GyroIntegrationParams,
-    saturated_turns,
-)
-from imupipe.solvers.rotation_integration import (
+from imupipe.rotations import (
     compose,
     pad_turns,
     quat_exp,
@@ -22,6 +16,12 @@ from imupipe.solvers.rotation_integration import (
     quat_to_matrix,
     rotation_angle,
     turn_rotations,
+)
+from imupipe.solvers.ellipsoid_svd import EllipsoidSVD, EllipsoidSVDParams, fit_quadric
+from imupipe.solvers.gyro_integration import (
+    GyroIntegration,
+    GyroIntegrationParams,
+    saturated_turns,
 )
 
 ACC_BIAS_TOL_MG = 0.2          # per axis, 1 mg = 9.80665e-3 m/s^2

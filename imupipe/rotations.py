@@ -1,0 +1,259 @@
+"""Finite rotations: matrices, quaternions, rotation vectors, body rates integrated exactly.
+
+Rotation matrices are ``(3, 3)`` or stacked ``(..., 3, 3)``; quaternions are
+``(..., 4)`` arrays ``(w, x, y, z)``, Hamilton convention. The simulator's ``R``
+is body-to-world: ``v_world = R @ v_body``.
+
+Body rates over a motion (a turn between two rests) integrate to the rotation
+``q`` that maps vectors in the body frame at the END of the motion to the body
+frame at its START: ``v_start = R(q) v_end``. A world-fixed vector such as
+gravity therefore obeys ``g_end = R(q)^T g_start`` (``carry``; Chikrin &
+Golousov, Eq. (2.16)). Each sample is a constant rate over its interval, so its
+rotation is ``exp(omega dt)`` exactly; motions are padded to one length with
+zero intervals and the ordered products formed by a log-depth pairwise scan
+(``compose``): ``log2(k_max)`` numpy calls for a whole set, no loop per sample.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+# Below this rotation angle (rad) exp uses its Taylor series (relative error < 1e-16).
+_SMALL_ANGLE = 1e-4
+
+
+# --------------------------------------------------------------------------- matrices
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrix ``[v]x``: (..., 3) -> (..., 3, 3)."""
+    v = np.asarray(v, dtype=float)
+    z = np.zeros(v.shape[:-1])
+    return np.stack([
+        np.stack([z, -v[..., 2], v[..., 1]], -1),
+        np.stack([v[..., 2], z, -v[..., 0]], -1),
+        np.stack([-v[..., 1], v[..., 0], z], -1),
+    ], -2)
+
+
+def exp_so3(axis: np.ndarray, angle: np.ndarray | float) -> np.ndarray:
+    """Rodrigues' formula: rotation by ``angle`` (rad, scalar or (n,)) about unit ``axis`` (3,)."""
+    axis = np.asarray(axis, dtype=float)
+    angle = np.asarray(angle, dtype=float)
+    K = skew(axis)
+    s, c = np.sin(angle)[..., None, None], np.cos(angle)[..., None, None]
+    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
+
+
+def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
+    """Matrix (3, 3) to rotation vector (3,) (rad), angle in [0, pi]; robust near a half turn."""
+    R = np.asarray(R, dtype=float)
+    cos = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    angle = float(np.arccos(cos))
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if angle < 1e-8:
+        return 0.5 * w
+    if angle < np.pi - 1e-3:
+        return w * angle / (2.0 * np.sin(angle))
+    B = (R + np.eye(3)) / 2.0  # = a a^T at a half turn
+    j = int(np.argmax(np.diag(B)))
+    axis = B[:, j] / np.sqrt(B[j, j])
+    if axis @ w < 0:
+        axis = -axis
+    return axis / np.linalg.norm(axis) * angle
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Angle (...,) rad of rotation matrices (..., 3, 3); accurate for small angles too."""
+    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
+                  R[..., 1, 0] - R[..., 0, 1]], -1)
+    return np.arctan2(0.5 * np.linalg.norm(w, axis=-1), 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0))
+
+
+def angle_between(R1: np.ndarray, R2: np.ndarray) -> np.ndarray:
+    """Angle (...,) rad of the rotation ``R1.T @ R2``."""
+    return rotation_angle(np.swapaxes(R1, -1, -2) @ R2)
+
+
+def nearest_rotation(A: np.ndarray) -> np.ndarray:
+    """The rotation matrix closest to ``A`` (3, 3) in Frobenius norm (polar factor)."""
+    U, _, Vt = np.linalg.svd(A)
+    d = np.sign(np.linalg.det(U @ Vt))
+    return U @ np.diag([1.0, 1.0, d]) @ Vt
+
+
+def frame_from_up_vectors(y_up: np.ndarray, x_up: np.ndarray | None) -> np.ndarray:
+    """Rotation R (3, 3) whose rows are the instrument axes in the current frame.
+
+    ``y_up``: the vector measured with instrument Y up; ``x_up``: with X up
+    (its part orthogonal to ``y_up`` fixes the heading, eqs. 18-19). Without
+    ``x_up``, the heading is the one that keeps the current x axis in the X-Y
+    plane (smallest turn).
+    """
+    ey = y_up / np.linalg.norm(y_up)
+    ref = x_up if x_up is not None else np.array([1.0, 0.0, 0.0])
+    ex = ref - ey * (ey @ ref)
+    if np.linalg.norm(ex) < 1e-6:
+        ex = np.array([0.0, 0.0, 1.0]) - ey * ey[2]
+    ex /= np.linalg.norm(ex)
+    ez = np.cross(ex, ey)
+    return np.vstack([ex, ey, ez])
+
+
+def align(body_vec: np.ndarray, world_vec: np.ndarray, heading_rad: float = 0.0) -> np.ndarray:
+    """A body-to-world rotation taking unit ``body_vec`` to unit ``world_vec``, then turned by
+    ``heading_rad`` about ``world_vec`` (the free angle)."""
+    a = np.asarray(body_vec, float) / np.linalg.norm(body_vec)
+    b = np.asarray(world_vec, float) / np.linalg.norm(world_vec)
+    v = np.cross(a, b)
+    s, c = np.linalg.norm(v), float(a @ b)
+    if s < 1e-12:
+        if c > 0:
+            R = np.eye(3)
+        else:  # half turn about any axis normal to a
+            n = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])
+            R = exp_so3(n / np.linalg.norm(n), np.pi)
+    else:
+        R = exp_so3(v / s, np.arctan2(s, c))
+    return exp_so3(b, heading_rad) @ R
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A rotation uniformly distributed over SO(3) (Haar measure), (3, 3)."""
+    return quat_to_matrix(rng.normal(size=4))
+
+
+def random_unit_vectors(rng: np.random.Generator, n: int) -> np.ndarray:
+    """``n`` unit vectors uniform on the sphere, (n, 3)."""
+    v = rng.normal(size=(n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+# --------------------------------------------------------------------------- quaternions
+
+
+def quat_exp(phi: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4) of rotation vectors ``phi`` (..., 3) rad."""
+    theta2 = np.einsum("...i,...i->...", phi, phi)
+    theta = np.sqrt(theta2)
+    small = theta < _SMALL_ANGLE
+    safe = np.where(small, 1.0, theta)
+    # sin(theta/2)/theta and cos(theta/2), with their series near zero.
+    s = np.where(small, 0.5 - theta2 / 48.0, np.sin(0.5 * safe) / safe)
+    c = np.where(small, 1.0 - theta2 / 8.0, np.cos(0.5 * safe))
+    return np.concatenate([c[..., None], s[..., None] * phi], axis=-1)
+
+
+def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product ``p * q`` of quaternion arrays (..., 4)."""
+    pw, px, py, pz = np.moveaxis(p, -1, 0)
+    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
+    return np.stack([
+        pw * qw - px * qx - py * qy - pz * qz,
+        pw * qx + px * qw + py * qz - pz * qy,
+        pw * qy - px * qz + py * qw + pz * qx,
+        pw * qz + px * qy - py * qx + pz * qw,
+    ], axis=-1)
+
+
+def compose(q: np.ndarray) -> np.ndarray:
+    """Ordered products ``q[:, 0] * q[:, 1] * ... * q[:, k-1]``: (m, k, 4) -> (m, 4).
+
+    Log-depth pairwise reduction: adjacent pairs are multiplied in order, which
+    associativity makes equal to the left-to-right product.
+    """
+    while q.shape[1] > 1:
+        if q.shape[1] % 2:
+            identity = np.zeros((q.shape[0], 1, 4))
+            identity[..., 0] = 1.0
+            q = np.concatenate([q, identity], axis=1)
+        q = quat_mul(q[:, 0::2], q[:, 1::2])
+    return q[:, 0]
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of quaternions (..., 4) (normalised first)."""
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], axis=-2)
+
+
+def quat_to_rotvec(q: np.ndarray) -> np.ndarray:
+    """Rotation vectors (..., 3) rad, angle in [0, pi], of unit quaternions (..., 4)."""
+    q = np.where(q[..., :1] < 0, -q, q)
+    s = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
+    tiny = s < 1e-15
+    return np.where(tiny, 2 * q[..., 1:],
+                    q[..., 1:] / np.where(tiny, 1.0, s) * 2 * np.arctan2(s, q[..., :1]))
+
+
+# --------------------------------------------------------------------------- body rates
+
+
+def hold_intervals(t: np.ndarray) -> np.ndarray:
+    """(k,) s: each sample held until the next one (zero-order hold) of ``t`` (k,) s.
+
+    The last sample gets the median step; tolerates irregular or bursty stamps.
+    """
+    t = np.asarray(t, dtype=float)
+    if len(t) < 2:
+        return np.zeros(len(t))
+    dt = np.diff(t)
+    return np.append(dt, np.median(dt))
+
+
+def centred_intervals(t: np.ndarray) -> np.ndarray:
+    """(k,) s: the time each sample stands for (centred differences of ``t`` (k,) s)."""
+    t = np.asarray(t, dtype=float)
+    if len(t) < 2:
+        return np.zeros(len(t))
+    d = np.diff(t)
+    dt = np.empty(len(t))
+    dt[1:-1] = 0.5 * (d[:-1] + d[1:])
+    dt[0], dt[-1] = d[0], d[-1]
+    return dt
+
+
+def pad_turns(t: Sequence[np.ndarray], rate: Sequence[np.ndarray],
+              intervals: Callable[[np.ndarray], np.ndarray] = centred_intervals,
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Stack ragged turns: rates (m, k_max, 3) rad/s and intervals (m, k_max) s, zero-padded.
+
+    ``t``: m arrays (k_i,) s; ``rate``: m arrays (k_i, 3) rad/s; ``intervals``:
+    the time each sample stands for (``centred_intervals`` or ``hold_intervals``).
+    Padded samples have ``dt = 0`` and so rotate by nothing.
+    """
+    m = len(rate)
+    k_max = max((len(w) for w in rate), default=0)
+    w_pad = np.zeros((m, max(k_max, 1), 3))
+    dt_pad = np.zeros((m, max(k_max, 1)))
+    for i, (ti, wi) in enumerate(zip(t, rate, strict=True)):
+        w_pad[i, : len(wi)] = wi
+        dt_pad[i, : len(wi)] = intervals(ti)
+    return w_pad, dt_pad
+
+
+def turn_quaternions(rate: np.ndarray, dt: np.ndarray) -> np.ndarray:
+    """Unit quaternions (m, 4) of padded turns: ``rate`` (m, k, 3) rad/s, ``dt`` (m, k) s.
+
+    ``rate`` is already corrected (bias removed, scale/misalignment applied).
+    """
+    q = compose(quat_exp(rate * dt[..., None]))
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def turn_rotations(rate: np.ndarray, dt: np.ndarray) -> np.ndarray:
+    """Rotation matrices (m, 3, 3) of padded turns, as ``turn_quaternions``."""
+    return quat_to_matrix(compose(quat_exp(rate * dt[..., None])))  # normalises once
+
+
+def carry(R: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """World-fixed vectors ``v`` (m, 3) seen in the body after it turned by ``R`` (m, 3, 3):
+    ``R^T v``, Eq. (2.16)."""
+    return np.einsum("mji,mj->mi", R, v)
