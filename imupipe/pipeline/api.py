@@ -101,7 +101,8 @@ def process_session(
 ) -> Path | None:
     """Run ``pipeline`` on one session and export; return the calibration.json written (if any).
 
-    On failure nothing is left claiming success: the session's calibration.json is removed.
+    On failure nothing is left claiming success: the session's calibration.json and a
+    report of an earlier run are removed (run.json records the error for ``status``).
     """
     run_dir = Path(out) / session_id
     calibration = run_dir / CALIBRATION
@@ -112,6 +113,7 @@ def process_session(
         return _export(run, registry, run_dir)
     except BaseException:
         calibration.unlink(missing_ok=True)
+        (run_dir / "report.md").unlink(missing_ok=True)
         raise
 
 

@@ -94,13 +94,15 @@ def test_failing_session_leaves_no_calibration_and_others_still_run(
     bad = tmp_path / "data" / "bad.arrowsession"
     bad.write_bytes(b"not arrow at all")
     (out / "bad").mkdir(parents=True)
-    (out / "bad" / "calibration.json").write_text("{}")  # stale result of an earlier run
+    (out / "bad" / "calibration.json").write_text("{}")  # stale results of an earlier run
+    (out / "bad" / "report.md").write_text("# old report")
     with pytest.raises(
         ReaderError,
         match=r"bad.arrowsession: not an Arrow IPC session .*\(1 of 2 sessions failed\)",
     ):
         run_sessions([bad, session], toy_pipeline, out, quiet=True, registry=registry)
     assert not (out / "bad" / "calibration.json").exists()
+    assert not (out / "bad" / "report.md").exists()
     assert (out / "s1" / "calibration.json").is_file()
     assert not list(out.rglob("*.part"))
 
