@@ -5,9 +5,10 @@
 Simulates the session, runs the method A stages (segmentation, thermal Kalman
 filter, accel ellipsoid with the reference rests, mag by the dip, gyro by
 Rodrigues with exact rotations, turn validation), and prints each error beside
-its target and the solver's own 1-sigma (the noise bound). Errors of M are split
-as E = M S_true - I: scale = diag(E), non-orthogonality = off-diagonal of the
-symmetric part, alignment = the antisymmetric part (a rotation).
+its target and the solver's own 1-sigma (the noise bound). Errors are those of
+``imupipe.sim.compare`` (polar decomposition M S_true = Q H): scale = diag(H - I),
+non-orthogonality = off-diagonal of H - I, alignment = angle of Q_acc^T Q_gyro,
+mag shape = max |H - I| (field_T given, so with the scale).
 """
 
 from __future__ import annotations
@@ -16,11 +17,10 @@ import argparse
 import json
 import time
 
-import numpy as np
-
 from imupipe.components import BoundSolver
 from imupipe.models import triads_from_table
 from imupipe.sim.api import simulate_recording
+from imupipe.sim.compare import calibration_errors, reported_sigma
 from imupipe.solvers.ellipsoid_cholesky import EllipsoidCholesky, EllipsoidParams
 from imupipe.solvers.gyro_rodrigues import GyroRodrigues, GyroRodriguesParams
 from imupipe.solvers.mag_dip import MagDip, MagDipParams
@@ -58,19 +58,6 @@ def run(protocol: str, seed: int, exact: bool, scale_deg: float = 10.0, roll: bo
             "validation": json.loads(va["report"].schema.metadata[b"imupipe.summary"])}
 
 
-def split(E: np.ndarray) -> tuple[float, float, np.ndarray]:
-    """(max |scale| , max |non-orthogonality|, rotation vector (3,)) of an error matrix."""
-    sym, skew = 0.5 * (E + E.T), 0.5 * (E - E.T)
-    off = sym - np.diag(np.diag(sym))
-    return float(np.abs(np.diag(E)).max()), float(np.abs(off).max()), \
-        np.array([skew[2, 1], skew[0, 2], skew[1, 0]])
-
-
-def sigma_max(t, idx: str) -> float:
-    s = np.array(t.details["sigma_M"])
-    return float((np.diag(s) if idx == "diag" else s[~np.eye(3, dtype=bool)]).max())
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--protocol", default="sphere_rig")
@@ -83,20 +70,16 @@ def main() -> None:
     a = ap.parse_args()
     r = run(a.protocol, a.seed, not a.small_angle, a.scale_turn_deg, a.roll_turn)
     truth, cal, g = r["truth"].calibration, r["cal"], r["env"]["g_m_s2"]
-    Ea, Eg, Em = (cal[s].M @ truth[s].S - np.eye(3) for s in ("accel", "gyro", "mag"))
-    sa, na, ra = split(Ea)
-    sg, ng, rg = split(Eg)
-    sm, nm, _ = split(Em)
-    bias_mg = np.abs(cal["accel"].b0 - truth["accel"].b0).max() / g * 1e3
+    e = calibration_errors(cal, truth, g)
+    sd = {s: reported_sigma(cal[s], g) for s in cal}
     rows = [
-        ("accel bias", bias_mg, np.max(cal["accel"].details["sigma_b0"]) / g * 1e3, 0.2, "mg"),
-        ("accel scale", sa * 1e6, sigma_max(cal["accel"], "diag") * 1e6, 200, "ppm"),
-        ("accel non-orthogonality", na * 1e6, sigma_max(cal["accel"], "off") * 1e6, 200, "ppm"),
-        ("gyro scale", sg * 1e6, sigma_max(cal["gyro"], "diag") * 1e6, 300, "ppm"),
-        ("gyro non-orthogonality", ng * 1e6, sigma_max(cal["gyro"], "off") * 1e6, 300, "ppm"),
-        ("gyro-to-accel alignment", np.degrees(np.linalg.norm(rg - ra)),
-         np.degrees(sigma_max(cal["gyro"], "off")), 0.02, "deg"),
-        ("mag shape", max(sm, nm) * 100, sigma_max(cal["mag"], "off") * 100, 0.2, "%"),
+        ("accel bias", e["accel"].bias, sd["accel"]["bias"], 0.2, "mg"),
+        ("accel scale", e["accel"].scale_ppm, sd["accel"]["scale_ppm"], 200, "ppm"),
+        ("accel non-orthogonality", e["accel"].nonorth_ppm, sd["accel"]["nonorth_ppm"], 200, "ppm"),
+        ("gyro scale", e["gyro"].scale_ppm, sd["gyro"]["scale_ppm"], 300, "ppm"),
+        ("gyro non-orthogonality", e["gyro"].nonorth_ppm, sd["gyro"]["nonorth_ppm"], 300, "ppm"),
+        ("gyro-to-accel alignment", e.gyro_accel_align_deg, sd["gyro"]["frame_deg"], 0.02, "deg"),
+        ("mag shape", e["mag"].shape_ppm * 1e-4, sd["mag"]["nonorth_ppm"] * 1e-4, 0.2, "%"),
     ]
     print(f"method A on simulated '{a.protocol}' (seed {a.seed}), {r['n_rests']} rests, "
           f"gyro {'small-angle (eq. 29)' if a.small_angle else 'exact rotation'}, scale from "

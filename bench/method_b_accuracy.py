@@ -9,7 +9,7 @@ no omitted-physics effects; ``gimbal+thermal`` keeps the model's bias temperatur
 coefficients and its 20 degC self-heating (method B has no thermal model; the
 refinement fits k when the rests span 2 degC). The stillness segmentation finds the rests and
 turns; each method's solvers run on them; the refinement starts from each.
-Errors, RMS over seeds, gauge-free:
+Errors, RMS over seeds, gauge-free (``imupipe.sim.compare``):
 
 - accel bias: max |b - b_true| over axes, mg;
 - accel shape: max |H - I| with ``M_est S_true = Q H`` (polar), ppm;
@@ -31,13 +31,13 @@ import time
 import warnings
 
 import numpy as np
-from scipy.linalg import polar
 
 from imupipe.errors import ImupipeError, SolverError
 from imupipe.models import TriadCalibration
 from imupipe.observations import EllipsoidObservations, GyroObservations, Rests, Turns
 from imupipe.plugins import make_registry
 from imupipe.sim.api import simulate_recording
+from imupipe.sim.compare import calibration_errors
 from imupipe.sim.sensor import default_imu
 from imupipe.solvers.ellipsoid_svd import EllipsoidSVD, EllipsoidSVDParams
 from imupipe.solvers.gyro_integration import GyroIntegration, GyroIntegrationParams
@@ -51,7 +51,6 @@ from imupipe.solvers.joint_ml import (
 )
 from imupipe.stages.segment import SegmentParams, segment
 
-MG = 9.80665e-3
 TARGETS = {"accel_bias_mg": 0.2, "accel_shape_ppm": 200.0, "gyro_shape_ppm": 300.0, "gyro_align_deg": 0.02}
 
 
@@ -115,14 +114,11 @@ def refine(rests: Rests, turns: Turns, g: float, start):
 
 
 def metrics(Ma, ba, Mg, bg, truth) -> dict[str, float]:
-    """Gauge-free errors (see the module docstring); ``b`` at 25 degC."""
-    Qa, Ha = polar(Ma @ truth["accel"].S)
-    Qg, Hg = polar(Mg @ truth["gyro"].S)
-    c = np.clip((np.trace(Qg @ Qa.T) - 1) / 2, -1, 1)
-    return {"accel_bias_mg": np.abs(ba - truth["accel"].b0).max() / MG,
-            "accel_shape_ppm": np.abs(Ha - np.eye(3)).max() * 1e6,
-            "gyro_shape_ppm": np.abs(Hg - np.eye(3)).max() * 1e6,
-            "gyro_align_deg": float(np.degrees(np.arccos(c)))}
+    """Gauge-free errors (``imupipe.sim.compare``; see the module docstring); ``b`` at 25 degC."""
+    e = calibration_errors({"accel": TriadCalibration("accel", Ma, ba), "gyro": TriadCalibration("gyro", Mg, bg)},
+                           truth)
+    return {"accel_bias_mg": e["accel"].bias, "accel_shape_ppm": e["accel"].shape_ppm,
+            "gyro_shape_ppm": e["gyro"].shape_ppm, "gyro_align_deg": e.gyro_accel_align_deg}
 
 
 def truth_problem(rests: Rests, turns: Turns, g: float, truth) -> JointProblem:

@@ -49,6 +49,7 @@ def _parser() -> argparse.ArgumentParser:
     sp.add_argument("sessions", type=Path, nargs="*", metavar="SESSION")
     sp.add_argument("--pipeline", type=Path, default=None)
     sp.add_argument("--out", type=Path, default=Path("imupipe-out"))
+    common(sp)
 
     sp = sub.add_parser("simulate", help="write a simulated calibration session with known truth")
     sp.add_argument("protocol")
@@ -64,7 +65,7 @@ def _parser() -> argparse.ArgumentParser:
     sp.add_argument("--out", type=Path, default=None, help="output .mcap or .csv (default: <protocol>.mcap)")
     common(sp)
 
-    sub.add_parser("plugins", help="list every plugin and what it provides")
+    common(sub.add_parser("plugins", help="list every plugin and what it provides"))
     return p
 
 

@@ -19,6 +19,7 @@ from .io import write_arrow
 from .plugins import Registry
 
 STREAMS = ("accel", "gyro", "mag", "temperature")
+TRIADS = ("accel", "gyro", "mag")
 
 
 def choose_reader(path: Path, registry: Registry, name: str | None = None):
@@ -47,8 +48,12 @@ def read_recording(path: Path | str, registry: Registry, reader: str | None = No
     """Read and check a recording."""
     path = Path(path)
     recording = choose_reader(path, registry, reader).read(path)
-    if not recording.devices or not any(recording.devices.values()):
-        raise ReaderError(f"{path}: holds no IMU data (no accelerometer, gyroscope or magnetometer stream)")
+    if not any(stream in TRIADS for streams in recording.devices.values() for stream in streams):
+        found = sorted({s for streams in recording.devices.values() for s in streams})
+        raise ReaderError(
+            f"{path}: holds no IMU data (no accelerometer, gyroscope or magnetometer stream; "
+            f"found: {', '.join(found) or 'nothing'})"
+        )
     for device, streams in recording.devices.items():
         for stream, table in streams.items():
             check_stream(table, stream, f"{path} [{device}/{stream}]")

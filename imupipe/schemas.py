@@ -21,6 +21,7 @@ from pathlib import Path
 import pyarrow as pa
 
 from .errors import SchemaError
+from .resources import shipped_dir
 
 SCHEMA_KEY = b"imupipe.schema"
 VERSION_KEY = b"imupipe.schema_version"
@@ -31,9 +32,9 @@ _FIXED_LIST = re.compile(r"^list<(\w+)>\[(\d+)\]$")
 
 
 def schema_dirs() -> list[Path]:
-    """Where schema files live: ``$IMUPIPE_SCHEMAS`` (colon-separated), then the repo's ``schemas/``."""
+    """Where schema files live: ``$IMUPIPE_SCHEMAS`` (colon-separated), then the shipped ``schemas/``."""
     dirs = [Path(p) for p in os.environ.get("IMUPIPE_SCHEMAS", "").split(os.pathsep) if p]
-    dirs.append(Path(__file__).resolve().parent.parent / "schemas")
+    dirs.append(shipped_dir("schemas"))
     return dirs
 
 

@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from ..components import BoundSolver, Params
 from ..errors import ConfigError, PluginError, describe_validation
 from ..plugins import Registry
+from ..resources import shipped_dir
 from . import dag
 
 _KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_-]*$")
@@ -52,10 +53,8 @@ class PipelineFile(_Section):
 
 
 def default_pipeline_path() -> Path:
-    """``pipelines/default.toml`` at the top of the repository (beside the package)."""
-    import imupipe
-
-    return Path(imupipe.__file__).resolve().parent.parent / "pipelines" / "default.toml"
+    """The shipped ``pipelines/default.toml``."""
+    return shipped_dir("pipelines") / "default.toml"
 
 
 def resolve_path(path: Path | str | None) -> Path:

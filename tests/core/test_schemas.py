@@ -11,7 +11,7 @@ import pytest
 from imupipe import schemas
 from imupipe.errors import SchemaError
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 SCHEMA_FILES = sorted((REPO / "schemas").glob("*.json"))
 
