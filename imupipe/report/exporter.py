@@ -2,8 +2,10 @@
 
 Tables are recognised by their schema, not by the pipeline's names for them:
 ``residuals`` (per stage: |g| and |B| errors before/after, the thermal fit, the
-gyro's turn residuals), ``validation`` (turn-angle errors, eq. 39) and
-``rests`` (positions on the sphere). Needs the ``report`` extra (matplotlib).
+gyro's turn residuals), ``turn_residuals`` (with the same stage's rest rows: the
+whitened residuals of a joint fit and its chi2/dof per block), ``validation``
+(turn-angle errors, eq. 39) and ``rests`` (positions on the sphere). Needs the
+``report`` extra (matplotlib).
 """
 
 from __future__ import annotations
@@ -31,6 +33,59 @@ def _col(table: pa.Table, name: str) -> np.ndarray:
 def _save(fig, path: Path) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+
+
+def _summary(table: pa.Table) -> dict:
+    return json.loads((table.schema.metadata or {}).get(b"imupipe.summary", b"{}"))
+
+
+def _fit_lines(stage: str, turns: pa.Table) -> list[str]:
+    """Markdown: the fit's chi2/dof per block and the turn table's chi2 per row."""
+    summary = _summary(turns)
+    lines = [f"## Whitened residuals of the joint fit ({stage})", ""]
+    if summary.get("chi2_per_dof") is not None:
+        band = 3 * np.sqrt(2 / max(summary["dof"], 1))
+        head = (f"chi2/dof {summary['chi2_per_dof']:.3g} ({summary['chi2']:.4g} over {summary['dof']} dof): "
+                f"1 +- {band:.2g} (3 sd) when the model (white noise, no omitted physics) holds.")
+        lines += [head, "", "| block | rows | chi2 | effective dof | chi2/dof |", "|---|---|---|---|---|"]
+        for name, b in summary.get("blocks", {}).items():
+            if b["rows"] and b["chi2_per_dof"] is not None:
+                lines.append(f"| {name} | {b['rows']} | {b['chi2']:.4g} | {b['dof']:.1f} | {b['chi2_per_dof']:.3g} |")
+    used = _col(turns, "used").astype(bool)
+    chi2, mismatch, t0 = _col(turns, "chi2"), _col(turns, "mismatch_deg"), _col(turns, "t_start_s")
+    rows = 2 * int(used.sum())
+    if rows:
+        total = float(chi2[used].sum())
+        lines.append(f"| turns, gravity measured at the rests | {rows} | {total:.4g} | ~{rows} | {total / rows:.3g} |")
+    worst = ", ".join(f"turn {i} at {t0[i]:.0f} s ({mismatch[i]:.3g} deg, chi2 {chi2[i]:.3g})"
+                      for i in np.argsort(chi2)[::-1][:3])
+    return [*lines, "", f"Largest turn mismatches: {worst}.", ""]
+
+
+def _draw_whitened(fig, rests: Mapping[str, pa.Table], turns: pa.Table) -> None:
+    """Three panels against session time: accel rests, gyro rests (per axis), turns."""
+    axes = fig.subplots(3, 1, sharex=True)
+    for ax, sensor in zip(axes[:2], ("accel", "gyro"), strict=True):
+        t = rests.get(sensor)
+        if t is not None and t.num_rows:
+            z, ts = _col(t, "normalised"), _col(t, "t_s") / 60
+            for i, (c, m) in enumerate(zip("xyz", "o^s", strict=True)):
+                ax.plot(ts, z[:, i], m, ms=3, alpha=0.8, label=c)
+            ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+        ax.set_ylabel(f"{sensor} rest\n(mean - model)/sigma", fontsize=8)
+    w, ts = _col(turns, "whitened"), _col(turns, "t_start_s") / 60
+    used = _col(turns, "used").astype(bool)
+    for i, m in enumerate("ox"):
+        axes[2].plot(ts[used], w[used, i], m, ms=3, label=f"component {i + 1}")
+    if (~used).any():
+        axes[2].plot(ts[~used], np.zeros((~used).sum()), "k|", ms=8, label="left out")
+    axes[2].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    axes[2].set_ylabel("turn gravity mismatch\nwhitened", fontsize=8)
+    axes[2].set_xlabel("session time, min")
+    for ax in axes:
+        ax.axhline(3, color="k", lw=0.8, ls="--")
+        ax.axhline(-3, color="k", lw=0.8, ls="--")
+        ax.grid(alpha=0.3)
 
 
 def _by_stage(tables: Mapping[str, pa.Table]) -> dict[tuple[str, str, str], pa.Table]:
@@ -65,11 +120,18 @@ class ReportExporter:
             lines += ["Skipped stages: " + ", ".join(f"`{k}` ({v})" for k, v in dict(context["skipped"]).items()), ""]
         groups = _by_stage(results)
 
-        def figure(name: str, title: str, draw) -> None:
-            fig, ax = plt.subplots(figsize=(7, 3.6))
-            draw(ax)
-            ax.set_title(title)
-            ax.grid(alpha=0.3)
+        def figure(name: str, title: str, draw, stage: str = "", panels: bool = False) -> None:
+            if f"{name}.png" in {p.name for p in written}:  # the same plot of another stage
+                name = f"{stage}_{name}"
+            if panels:
+                fig = plt.figure(figsize=(8, 7))
+                draw(fig)
+                fig.suptitle(title)
+            else:
+                fig, ax = plt.subplots(figsize=(7, 3.6))
+                draw(ax)
+                ax.set_title(title)
+                ax.grid(alpha=0.3)
             path = figs / f"{name}.png"
             _save(fig, path)
             plt.close(fig)
@@ -90,7 +152,8 @@ class ReportExporter:
                     ax.set_xlabel("rest")
                     ax.set_ylabel(f"|{ref}| error, per mille")
                     ax.legend()
-                figure(f"{sensor}_norm_errors", f"{sensor}: |{ref}| error before/after (paper Fig. 4b)", draw)
+                figure(f"{sensor}_norm_errors", f"{sensor}: |{ref}| error before/after (paper Fig. 4b)", draw,
+                       stage)
             if kind == "average":
                 T, meas, pred = _col(t, "temperature"), _col(t, "measured"), _col(t, "predicted")
                 rms = np.sqrt(np.mean((meas - pred) ** 2, axis=0))
@@ -106,7 +169,13 @@ class ReportExporter:
                 figure(f"{sensor}_thermal", f"{sensor}: bias vs temperature over the warm-up", draw)
         for t in results.values():
             sid = schemas.schema_of(t)
-            if sid == "validation":
+            if sid == "turn_residuals" and t.num_rows:
+                stage = str(_col(t, "stage")[0])
+                lines += _fit_lines(stage, t)
+                rests = {s: groups[(stage, s, "rest")] for s in ("accel", "gyro") if (stage, s, "rest") in groups}
+                figure(f"{stage}_whitened", f"{stage}: whitened residuals per rest and per turn",
+                       lambda fig, rests=rests, t=t: _draw_whitened(fig, rests, t), stage, panels=True)
+            elif sid == "validation":
                 summary = json.loads((t.schema.metadata or {}).get(b"imupipe.summary", b"{}"))
                 lines += ["## Turn validation (eqs. 38-39)", "", "| quantity | value |", "|---|---|"]
                 lines += [f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {v} |"

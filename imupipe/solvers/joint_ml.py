@@ -36,9 +36,10 @@ from ..components import Params
 from ..errors import SolverError
 from ..models import T_REF_C, TriadCalibration
 from ..observations import Rests, TriadFit, Turns
-from ..rotations import carry, pad_turns, rotation_angle, skew, turn_rotations
-from .gyro_integration import drop_saturated
+from ..rotations import carry, pad_turns, rotation_angle, turn_rotations
+from .gyro_integration import drop_saturated, saturated_turns
 from .triad_covariance import shape_basis
+from .turn_model import carried_cov, gyro_sample_cov, integrated_gyro_cov, tangent_basis
 
 N_MAIN = 21  # S_a (6), b_a (3), M_g (9), b_g (3); then k_a, k_g (6) when fitted
 N_OUT = 30  # M_a (9), b_a (3), M_g (9), b_g (3), k_a (3), k_g (3)
@@ -80,22 +81,17 @@ class JointFit:
     """``triads``: refined ``TriadFit`` per sensor; ``cov`` (30, 30) over
     ``(M_a.ravel(), b_a, M_g.ravel(), b_g, k_a, k_g)`` (k rows zero when not fitted);
     ``details`` fit statistics; ``k`` the temperature coefficients used per sensor
-    (fitted or the start's), ``sigma_k`` their 1-sigma when fitted."""
+    (fitted or the start's), ``sigma_k`` their 1-sigma when fitted; ``rest_gravity``
+    (n, 3) the fitted unit gravity (nuisance) at every rest, instrument frame of the
+    result; ``turns_used`` (m,) bool, the turns of the observations the fit used."""
 
     triads: dict[str, TriadFit]
     cov: np.ndarray
     details: dict[str, Any] = field(default_factory=dict)
     k: dict[str, np.ndarray] = field(default_factory=dict)
     sigma_k: dict[str, np.ndarray] = field(default_factory=dict)
-
-
-def tangent_basis(u: np.ndarray) -> np.ndarray:
-    """(n, 3, 2) orthonormal bases of the planes normal to unit vectors ``u`` (n, 3)."""
-    helper = np.where(np.abs(u[:, [0]]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
-    e1 = np.cross(u, helper)
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(u, e1)
-    return np.stack([e1, e2], axis=-1)
+    rest_gravity: np.ndarray | None = None
+    turns_used: np.ndarray | None = None
 
 
 def _whitener(cov: np.ndarray) -> np.ndarray:
@@ -135,15 +131,11 @@ class JointProblem:
             u0 = (self.y_a - np.outer(self.dT, self.k_a) - b_a) @ np.linalg.inv(S_a).T
         self.u0 = u0 / np.linalg.norm(u0, axis=1, keepdims=True)
         self.B = tangent_basis(self.u0)
-        # Turn noise: white gyro noise integrated over the turn (docs/method-b.md).
-        sigma_g = np.median(rests.cov["gyro"], axis=0)
-        sum_dt2 = np.sum(self.dt**2, axis=1)
-        cov_phi = sum_dt2[:, None, None] * (M_g @ sigma_g @ M_g.T)
-        Rs = self._rotations(M_g, b_g, self.k_g)
-        v = carry(Rs, self.u0[self.p])
-        Vx = skew(v)
+        # Turn noise: white gyro noise integrated over the turn (docs/method-b.md, turn_model).
+        cov_phi = integrated_gyro_cov(gyro_sample_cov(rests), self.dt, M_g)
+        v = carry(self._rotations(M_g, b_g, self.k_g), self.u0[self.p])
         Eq = self.B[self.q]
-        cov2 = np.einsum("mia,mij,mjk,mlk,mlb->mab", Eq, Vx, cov_phi, Vx, Eq)
+        cov2 = np.swapaxes(Eq, -1, -2) @ carried_cov(v, cov_phi) @ Eq
         self.W_t = _whitener(cov2 + 1e-30 * np.eye(2))
         self.n = n
         # A thermal stage's k (6,) with 1-sigma enters as a prior measurement where sigma > 0.
@@ -278,11 +270,12 @@ class JointML:
 
     name = "joint_ml"
     kind = "joint"
-    version = "1"
+    version = "2"
     params: ClassVar[type[Params]] = JointMLParams
 
     def solve(self, observations: JointObservations, params: JointMLParams) -> JointFit:
         obs = observations
+        used = ~saturated_turns(obs.turns, params.saturation_rad_s)[0]
         turns = drop_saturated(obs.turns, params.saturation_rad_s, "joint_ml")
         if len(turns) < 5 or len(obs.rests) < 9:
             raise SolverError(
@@ -299,14 +292,16 @@ class JointML:
         sol = least_squares(prob.residuals, prob.x0, jac=prob.jacobian, method="lm",
                             max_nfev=params.max_nfev, x_scale="jac")
         x = sol.x
-        S_a, b_a, M_g, b_g, k_a, k_g, _ = prob.unpack(x)
+        S_a, b_a, M_g, b_g, k_a, k_g, v = prob.unpack(x)
+        u = v / np.linalg.norm(v, axis=1, keepdims=True)
         J = sol.jac
         JtJ = J.T @ J
         if np.linalg.cond(JtJ) > 1e14:
             raise SolverError(f"joint_ml: the rests and turns do not determine all {prob.nm} constants; "
                               "record rests over the whole sphere and turns about all three axes"
                               + (" (or set fit_temperature = 'no')" if fit_k else ""))
-        C = np.linalg.inv(JtJ)[: prob.nm, : prob.nm]
+        C_all = np.linalg.inv(JtJ)
+        C = C_all[: prob.nm, : prob.nm]
         G = prob.output_jacobian(x)
         cov = G @ C @ G.T
         chi2 = float(sol.fun @ sol.fun)
@@ -318,14 +313,19 @@ class JointML:
         if params.keep_frame:
             M_a, M_g = Q.T @ M_a, Q.T @ M_g
             cov = rotate_cov(cov, Q)
+            u = u @ Q  # Q^T u per row: gravity in the start's frame
         n = len(obs.rests)
         r = sol.fun
+        blocks = block_statistics(r, J, C_all, n, len(turns))
         details = {
             "chi2": chi2, "dof": dof, "chi2_per_dof": chi2 / dof if dof > 0 else float("nan"),
             "inflation": inflation, "iterations": int(sol.nfev), "converged": bool(sol.success),
-            "rms_whitened": {"accel": float(np.sqrt(np.mean(r[: 3 * n] ** 2))),
-                             "gyro_rest": float(np.sqrt(np.mean(r[3 * n: 6 * n] ** 2))),
-                             "turn": float(np.sqrt(np.mean(r[6 * n: 6 * n + 2 * len(turns)] ** 2)))},
+            "rms_whitened": {"accel": blocks["accel_rest"]["rms"], "gyro_rest": blocks["gyro_rest"]["rms"],
+                             "turn": blocks["turn"]["rms"]},
+            "blocks": blocks,
+            "noise_model": ("white: each rest's own sample covariance over its count (rest means); "
+                            "turns: the rests' median gyro sample covariance integrated over the turn "
+                            "(sum dt^2); no bias drift, no earth rate"),
             "k_prior_entries": len(prob.prior),
             "turn_angle_deg_max": float(np.degrees(rotation_angle(R)).max()),
             "rests": n, "turns": len(turns), "turns_saturated": len(obs.turns) - len(turns),
@@ -338,7 +338,29 @@ class JointML:
         }
         k = {"accel": np.asarray(k_a), "gyro": np.asarray(k_g)}
         sigma_k = {"accel": sd[24:27], "gyro": sd[27:30]} if fit_k else {}
-        return JointFit(triads, cov, details, k, sigma_k)
+        return JointFit(triads, cov, details, k, sigma_k, rest_gravity=u, turns_used=used)
+
+
+def block_statistics(r: np.ndarray, J: np.ndarray, C: np.ndarray, n: int, m: int) -> dict[str, dict]:
+    """chi2, rows, effective dof and RMS of each block of the whitened residual ``r`` (N,).
+
+    The effective dof of a block is its rows minus their leverages ``diag(J C J^T)``
+    (``J`` (N, P) whitened Jacobian at the optimum, ``C = (J^T J)^-1``): the share of
+    the fitted parameters (nuisance directions included) the block absorbs, so
+    ``chi2 / dof`` is 1 in expectation per block when the model holds.
+    """
+    leverage = np.einsum("ip,pq,iq->i", J, C, J)
+    edges = {"accel_rest": (0, 3 * n), "gyro_rest": (3 * n, 6 * n), "turn": (6 * n, 6 * n + 2 * m),
+             "k_prior": (6 * n + 2 * m, len(r))}
+    out = {}
+    for name, (a, b) in edges.items():
+        rows = b - a
+        chi2 = float(r[a:b] @ r[a:b])
+        dof = float(rows - leverage[a:b].sum())
+        out[name] = {"chi2": chi2, "rows": rows, "dof": dof,  # None: undefined (JSON has no NaN)
+                     "chi2_per_dof": chi2 / dof if dof > 0 else None,
+                     "rms": float(np.sqrt(chi2 / rows)) if rows else None}
+    return out
 
 
 COMPONENTS = [JointML()]

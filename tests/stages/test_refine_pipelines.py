@@ -51,6 +51,10 @@ def test_gimbal_pipeline_recovers_with_refinement_and_control(gimbal_csv, tmp_pa
     assert joint["fitted_temperature_coefficients"] and 0.7 < joint["chi2_per_dof"] < 1.5
     run = json.loads((written[0].parent / "run.json").read_text())
     assert run["stages"]["control"]["status"] == "ran"
+    report = (written[0].parent / "report.md").read_text()
+    assert "## Whitened residuals of the joint fit (refine_joint)" in report
+    assert f"chi2/dof {joint['chi2_per_dof']:.3g}" in report
+    assert (written[0].parent / "figures" / "refine_joint_whitened.png").stat().st_size > 10_000
 
 
 def test_imu_tk_pipeline_matches_imu_tk_on_its_own_recording(shared_data, tmp_path):
