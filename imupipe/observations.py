@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from .errors import SchemaError, SolverError
+from .errors import SolverError
 
 TRIADS = ("accel", "gyro", "mag")
 
@@ -175,10 +175,6 @@ class Turns:
                    turns.column("rest_after").to_numpy().astype(np.int64), tuple(ts), tuple(ws))
 
 
-def rests_from_table(table: pa.Table) -> Rests:
-    return Rests.from_table(table)
-
-
 # --------------------------------------------------------------------------- solver inputs
 
 
@@ -293,14 +289,6 @@ class TriadFit:
         details["sigma_k"] = (np.zeros(3) if sigma_k is None else np.asarray(sigma_k)).tolist()
         return TriadCalibration(sensor, self.M, self.b0, np.zeros(3) if k is None else k,
                                 solver=solver, details=details)
-
-
-def check_shape(name: str, value: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
-    """``value`` as float array of ``shape`` (-1 = any), or a SchemaError naming it."""
-    value = np.asarray(value, dtype=float)
-    if value.ndim != len(shape) or any(s not in (-1, v) for s, v in zip(shape, value.shape, strict=True)):
-        raise SchemaError(f"{name} has shape {value.shape}, expected {shape}")
-    return value
 
 
 def forward_jacobian(cal: Any, x: np.ndarray, T: np.ndarray | float | None = None) -> np.ndarray:

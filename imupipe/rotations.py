@@ -125,12 +125,6 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     return quat_to_matrix(rng.normal(size=4))
 
 
-def random_unit_vectors(rng: np.random.Generator, n: int) -> np.ndarray:
-    """``n`` unit vectors uniform on the sphere, (n, 3)."""
-    v = rng.normal(size=(n, 3))
-    return v / np.linalg.norm(v, axis=1, keepdims=True)
-
-
 # --------------------------------------------------------------------------- quaternions
 
 

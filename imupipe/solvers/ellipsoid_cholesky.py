@@ -12,6 +12,7 @@ from dataclasses import dataclass, replace
 from typing import ClassVar, Literal
 
 import numpy as np
+from pydantic import Field
 
 from ..components import Params
 from ..errors import SolverError
@@ -26,10 +27,15 @@ MIN_COVERAGE = 0.35  # smallest eigenvalue of the direction scatter (0.333 = uni
 class EllipsoidShape:
     """Normalised ellipsoid: ``u = y / scale``; ``(u - b)^T D0 (u - b) = rho^2`` (eq. 13).
 
-    ``L`` lower Cholesky factor of ``D0`` (eq. 15); ``d`` the 9 LS unknowns (eq. 11),
-    ``d_cov`` (9, 9) their covariance from the normal equations.
+    The LS (eq. 12) runs on the points less their mean ``centre`` (3,), raw units:
+    the D33 = 0 form (right-hand side 1) needs the origin inside the ellipsoid,
+    which raw counts or a hard iron larger than the field break. ``d`` the 9 LS
+    unknowns (eq. 11) of the centred points, ``d_cov`` (9, 9) their covariance
+    from the normal equations; ``b`` (3,) the centre in units of ``u`` (the raw
+    offset is ``b * scale``); ``L`` lower Cholesky factor of ``D0`` (eq. 15).
     """
 
+    centre: np.ndarray
     scale: float
     d: np.ndarray
     d_cov: np.ndarray
@@ -38,6 +44,12 @@ class EllipsoidShape:
     L: np.ndarray
     rho: float
     residual_rms: float
+
+    def geometry(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """(b (3,) in units of ``u``, L (3, 3), rho) for an LS vector ``d`` of the centred
+        points: ``shape_from_d`` with the centre added back."""
+        _, b, L, rho = shape_from_d(d)
+        return self.centre / self.scale + b, L, rho
 
 
 def design_row(u: np.ndarray) -> np.ndarray:
@@ -86,7 +98,8 @@ def fit_ellipsoid(y: np.ndarray, what: str, min_positions: int = MIN_POSITIONS,
             f"{what}: the {n} positions cover the sphere poorly (coverage {cov_q:.2f}, need "
             f">= {min_coverage}); add positions with the missing axes pointing up and down"
         )
-    u = y / scale
+    centre = y.mean(axis=0)
+    u = centred / scale  # origin inside the ellipsoid whatever the offset
     V = design_row(u)
     G = np.ones(n)
     d, *_ = np.linalg.lstsq(V, G, rcond=None)  # Eq. (12)
@@ -95,7 +108,8 @@ def fit_ellipsoid(y: np.ndarray, what: str, min_positions: int = MIN_POSITIONS,
     s2 = float(r @ r / dof)
     d_cov = s2 * np.linalg.pinv(V.T @ V)
     D0, b, L, rho = shape_from_d(d)
-    return EllipsoidShape(scale, d, d_cov, D0, b, L, rho, float(np.sqrt(s2)))
+    return EllipsoidShape(centre, scale, d, d_cov, D0, centre / scale + b, L, rho,
+                          float(np.sqrt(s2)))
 
 
 def jacobian(f, x: np.ndarray, rel: float = 1e-7) -> np.ndarray:
@@ -118,14 +132,14 @@ class EllipsoidParams(Params):
 
     canonical_frame: Literal["symmetric", "upper_triangular"] = "symmetric"
     scale_from: Literal["fit", "reference"] = "fit"
-    min_positions: int = MIN_POSITIONS
-    min_coverage: float = MIN_COVERAGE
+    min_positions: int = Field(MIN_POSITIONS, ge=9)
+    min_coverage: float = Field(MIN_COVERAGE, ge=0, le=1)
 
 
 def correction(shape: EllipsoidShape, d: np.ndarray, obs: EllipsoidObservations,
                p: EllipsoidParams) -> tuple[np.ndarray, np.ndarray, dict]:
     """M (normalised, eq. 20) and b (raw units) for LS vector ``d``."""
-    _, b, L, rho = shape_from_d(d)
+    b, L, rho = shape.geometry(d)
     u = obs.y / shape.scale
     if obs.y_up is not None:
         g_hat = L.T @ (u[obs.y_up] - b)  # Eq. (17)
@@ -147,7 +161,7 @@ class EllipsoidCholesky:
 
     name = "ellipsoid_cholesky"
     kind = "accel"
-    version = "1"
+    version = "2"  # 2: fit on centred points (offsets beyond the radius)
     params: ClassVar[type[Params]] = EllipsoidParams
 
     def solve(self, obs: EllipsoidObservations, params: EllipsoidParams) -> TriadFit:

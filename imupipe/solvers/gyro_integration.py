@@ -22,6 +22,7 @@ import warnings
 from typing import ClassVar, Literal
 
 import numpy as np
+from pydantic import Field
 from scipy.optimize import least_squares
 
 from ..components import Params
@@ -41,12 +42,12 @@ class GyroIntegrationParams(Params):
     first_rest: the first rest's mean (imu_tk's initial static interval)."""
     fit_bias: bool = False
     """Also refine the bias in the optimisation (the paper keeps Eq. (2.15)'s mean)."""
-    max_nfev: int = 200
+    max_nfev: int = Field(200, ge=1)
     """Cost evaluations the optimiser may spend."""
     exclude_saturated: bool = True
     """Leave out turns whose gyro clips (runs of samples at the axis's extreme value, or
     beyond ``saturation_rad_s``), with a warning: a clipped rate cannot be integrated."""
-    saturation_rad_s: float | None = None
+    saturation_rad_s: float | None = Field(None, gt=0)
     """The gyro's range in rad/s when known; None: detect clipping from the data."""
     scale_search: bool = True
     """Start from the best ``s I`` on a grid around the turn angles implied by gravity (the

@@ -21,6 +21,7 @@ import warnings
 from typing import ClassVar
 
 import numpy as np
+from pydantic import Field
 
 from ..components import Params
 from ..errors import SolverError
@@ -46,11 +47,11 @@ class GyroRodriguesParams(Params):
     over all turns) uses turns up to this angle only (eq. 28 fails for large turns)."""
 
     exact_rotation: bool = True
-    min_tilt_deg: float = 0.5
-    min_turns: int = MIN_TURNS
-    iterations: int = 40
-    tolerance: float = 1e-10
-    max_scale_turn_deg: float = 60.0
+    min_tilt_deg: float = Field(0.5, ge=0, lt=180)
+    min_turns: int = Field(MIN_TURNS, ge=8)
+    iterations: int = Field(40, ge=1)
+    tolerance: float = Field(1e-10, gt=0)
+    max_scale_turn_deg: float = Field(60.0, gt=0)
 
 
 Rates = tuple[np.ndarray, np.ndarray]  # padded turns: rates (m, k, 3) rad/s, hold intervals (m, k) s
@@ -65,6 +66,17 @@ def turn_rates(obs: GyroObservations) -> Rates:
     """Padded turns: raw rates minus each turn's bias, and each sample's hold interval."""
     rate, dt = pad_turns(obs.turns.t, obs.turns.gyro, hold_intervals)
     return rate - turn_bias(obs)[:, None, :], dt
+
+
+def rate_unit(rates: Rates, tilt_rad: np.ndarray) -> float:
+    """Rough rad/s per raw unit (1 for rad/s data): a turn tilts gravity by at most the angle
+    it turns through, so ``tilt / |sum w dt|`` is near the unit for turns about a horizontal
+    axis and below it otherwise; the upper decile. Solving in these units lets ``M00 = 1``
+    and the exact rotations start near the truth for raw counts too."""
+    rate, dt = rates
+    angle = np.linalg.norm(np.einsum("mk,mki->mi", dt, rate), axis=1)
+    ok = (angle > 0) & (tilt_rad > np.radians(1.0))
+    return float(np.quantile(tilt_rad[ok] / angle[ok], 0.9)) if ok.any() else 1.0
 
 
 def take(rates: Rates, index) -> Rates:
@@ -96,14 +108,6 @@ def bias_of_turns(obs: GyroObservations, turns: np.ndarray) -> tuple[np.ndarray,
     return weight @ obs.bias, cov
 
 
-def gibbs_of(phi: np.ndarray, exact: bool) -> np.ndarray:
-    """Half finite-rotation vector: ``e tan(chi/2)`` (exact) or ``phi / 2`` (eq. 28)."""
-    chi = np.linalg.norm(phi)
-    if not exact or chi < 1e-12:
-        return 0.5 * phi
-    return phi / chi * np.tan(chi / 2)
-
-
 def rodrigues_error(g0: np.ndarray, g1: np.ndarray, Y: np.ndarray) -> np.ndarray:
     """Eq. (38): ``E = (g1 - g0) + Y x (g1 + g0)``, (3,) or (m, 3)."""
     return (g1 - g0) + np.cross(Y, g1 + g0)
@@ -130,7 +134,7 @@ class GyroRodrigues:
 
     name = "gyro_rodrigues"
     kind = "gyro"
-    version = "2"  # 2: b0 from the rests around the turns used
+    version = "3"  # 2: b0 from the rests around the turns used; 3: any rate unit (counts)
     params: ClassVar[type[Params]] = GyroRodriguesParams
 
     def solve(self, obs: GyroObservations, params: GyroRodriguesParams) -> TriadFit:
@@ -145,6 +149,8 @@ class GyroRodrigues:
                 "about varied horizontal axes: record more rest-turn-rest motions"
             )
         rates = turn_rates(obs)
+        unit = rate_unit(take(rates, use), np.radians(tilt[use]))
+        rates = (rates[0] * unit, rates[1])  # solved in ~rad/s; M returned per raw unit
         C = np.cross(g0, g1)
         C /= np.linalg.norm(C, axis=1, keepdims=True).clip(1e-300)
         S = (g0 + g1) / np.linalg.norm(g0 + g1, axis=1, keepdims=True).clip(1e-300)
@@ -195,7 +201,7 @@ class GyroRodrigues:
         cov = np.zeros((12, 12))
         cov[:9, :9] = self._covariance(H, Z, m, beta, rates, sel, g0, g1,
                                         params.exact_rotation or obs.roll_turn is not None,
-                                        self._scale_noise(obs, rates, sel))
+                                        self._scale_noise(obs, rates, sel, unit))
         b0, cov[9:, 9:] = bias_of_turns(obs, np.union1d(use, sel))
         details = {
             "n_turns_used": len(use), "n_turns": len(obs.turns),
@@ -205,7 +211,9 @@ class GyroRodrigues:
             "max_turn_deg": float(np.degrees(np.linalg.norm(
                 rotations_of(used, M, True), axis=1)).max()),
         }
-        return TriadFit(M, b0, cov, details)
+        cov[:9, :9] *= unit**2
+        details["rate_unit"] = unit
+        return TriadFit(unit * M, b0, cov, details)
 
     @staticmethod
     def _scale(obs, rates, M_hat, g0, g1, use, params, beta_prev) -> tuple[float, list[int]]:
@@ -255,9 +263,10 @@ class GyroRodrigues:
         return beta, sel
 
     @staticmethod
-    def _scale_noise(obs: GyroObservations, rates, sel) -> float:
+    def _scale_noise(obs: GyroObservations, rates, sel, unit: float = 1.0) -> float:
         """Variance per component of the scale residuals the noise model predicts (0: none):
-        gravity noise at both rests, white gyro noise and bias error integrated over each turn."""
+        gravity noise at both rests, white gyro noise and bias error integrated over each turn;
+        ``unit`` converts the raw rate noise to the solving units (``rate_unit``)."""
         if obs.gravity_cov is None or obs.rate_sigma is None:
             return 0.0
         b, a = obs.turns.before[sel], obs.turns.after[sel]
@@ -268,8 +277,8 @@ class GyroRodrigues:
             return np.trace(cov, axis1=1, axis2=2)
 
         grav = (trace(obs.gravity_cov[b]) + trace(obs.gravity_cov[a])) / 3
-        white = float(np.mean(obs.rate_sigma**2)) * np.sum(dt * dt, axis=1)
-        bias = (trace(obs.bias_cov[b]) + trace(obs.bias_cov[a])) / 12 * span**2
+        white = float(np.mean(obs.rate_sigma**2)) * np.sum(dt * dt, axis=1) * unit**2
+        bias = (trace(obs.bias_cov[b]) + trace(obs.bias_cov[a])) / 12 * span**2 * unit**2
         return float(np.mean(grav + white + bias))
 
     @staticmethod

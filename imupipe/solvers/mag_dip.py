@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import ClassVar
 
 import numpy as np
+from pydantic import Field
 
 from ..components import Params
 from ..errors import SolverError
@@ -22,15 +23,14 @@ from .ellipsoid_cholesky import (
     coverage,
     fit_ellipsoid,
     jacobian,
-    shape_from_d,
 )
 
 
 class MagDipParams(Params):
     """``min_positions``, ``min_coverage``: refusal thresholds of the ellipsoid fit."""
 
-    min_positions: int = MIN_POSITIONS
-    min_coverage: float = MIN_COVERAGE
+    min_positions: int = Field(MIN_POSITIONS, ge=9)
+    min_coverage: float = Field(MIN_COVERAGE, ge=0, le=1)
 
 
 def circle_dip(unit_fields: list[np.ndarray]) -> tuple[float, list[float]]:
@@ -60,7 +60,7 @@ class MagDip:
 
     name = "ellipsoid_dip"
     kind = "mag"
-    version = "1"
+    version = "2"  # 2: ellipsoid fit on centred points (hard iron beyond the field)
     params: ClassVar[type[Params]] = MagDipParams
 
     def solve(self, obs: EllipsoidObservations, params: MagDipParams) -> TriadFit:
@@ -75,7 +75,7 @@ class MagDip:
 
         def solve_from(d: np.ndarray, r_fixed: np.ndarray | None = None):
             """(Mn, b, info) for ellipsoid vector ``d``; ``r_fixed`` replaces the LS of eq. (23)."""
-            _, b, L, _ = shape_from_d(d)
+            b, L, _ = shape.geometry(d)
             B_hat = (u - b) @ L  # rows: L^T (m - b), analogue of eq. (17)
             V = np.einsum("ki,kj->kij", g, B_hat).reshape(len(u), 9)  # Eq. (22): rows m_k
             target = -np.sin(obs.dip_rad) if obs.dip_rad is not None else 1.0

@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import ClassVar
 
 import numpy as np
+from pydantic import Field
 
 from ..components import Params
 from ..observations import ThermalFit, ThermalObservations
@@ -19,8 +20,8 @@ from .thermal_kalman import MIN_SPAN_C, check_span
 class ThermalPolyParams(Params):
     """``degree``: 1 (linear LS, equal to the filter with a flat prior) to 3 (PX4)."""
 
-    degree: int = 3
-    min_span_C: float = MIN_SPAN_C
+    degree: int = Field(3, ge=1, le=3)
+    min_span_C: float = Field(MIN_SPAN_C, gt=0)
 
 
 class ThermalPoly:

@@ -9,7 +9,7 @@ import pyarrow as pa
 
 from .. import schemas
 from ..errors import SolverError
-from ..models import TriadCalibration, triads_from_table
+from ..models import T_REF_C, TriadCalibration, triads_from_table
 from ..observations import Rests, TriadFit
 
 
@@ -40,8 +40,8 @@ def thermal_k(inputs: Mapping[str, pa.Table], sensor: str) -> tuple[np.ndarray, 
 
 
 def dT(T: np.ndarray) -> np.ndarray:
-    """Temperature minus 25 degC; zero where the temperature is unknown (NaN)."""
-    return np.nan_to_num(np.asarray(T, dtype=float) - 25.0)
+    """Temperature minus T_REF_C (25 degC); zero where the temperature is unknown (NaN)."""
+    return np.nan_to_num(np.asarray(T, dtype=float) - T_REF_C)
 
 
 def noise_details(rests: Rests, sensor: str) -> dict:
@@ -95,8 +95,8 @@ def rest_at_time(rests: Rests, t_s: float) -> int:
 
 
 def model_T(T: np.ndarray) -> np.ndarray:
-    """Temperatures for ``apply``/``predict``: unknown (NaN) is taken as 25 degC (no thermal term)."""
-    return np.where(np.isfinite(T), T, 25.0)
+    """Temperatures for ``apply``/``predict``: unknown (NaN) is taken as T_REF_C (no thermal term)."""
+    return np.where(np.isfinite(T), T, T_REF_C)
 
 
 def add_thermal_variance(fit: TriadFit, T: np.ndarray, sigma_k: np.ndarray) -> TriadFit:

@@ -14,9 +14,10 @@ from collections.abc import Mapping
 
 import numpy as np
 import pyarrow as pa
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from ..components import BoundSolver, Params, Stage
+from ..errors import ConfigError
 from ..models import triads_to_table
 from ..observations import EllipsoidObservations, Rests
 from ._calib_common import (
@@ -33,26 +34,44 @@ G_STANDARD = 9.80665
 
 
 class AccelParams(Params):
-    """``g_m_s2``: local gravity; ``y_up_rest``/``x_up_rest``: reference rests by index,
-    or ``y_up_time_s``/``x_up_time_s`` by a time inside them (s since the session start);
-    ``detect_reference``: otherwise take the longest rests whose raw direction is within
-    ``detect_tol_deg`` of the sensor's +Y / +X axes; ``min_rest_s``: shorter rests are
-    left out of the fit."""
+    """``g_m_s2``: local gravity; ``y_up_rest``/``x_up_rest``: reference rests by index
+    into the segmentation's rests table (before ``min_rest_s``), or ``y_up_time_s``/
+    ``x_up_time_s`` by a time inside them (s since the session start); X up needs Y up
+    (eq. 19 turns about the Y-up axis); ``detect_reference``: otherwise take the longest
+    rests whose raw direction is within ``detect_tol_deg`` of the sensor's +Y / +X axes;
+    ``min_rest_s``: shorter rests are left out of the fit (reference rests stay in)."""
 
-    g_m_s2: float = G_STANDARD
-    y_up_rest: int | None = None
-    x_up_rest: int | None = None
+    g_m_s2: float = Field(G_STANDARD, gt=0)
+    y_up_rest: int | None = Field(None, ge=0)
+    x_up_rest: int | None = Field(None, ge=0)
     y_up_time_s: float | None = None
     x_up_time_s: float | None = None
     detect_reference: bool = False
-    detect_tol_deg: float = 3.0
-    min_rest_s: float = 0.0
+    detect_tol_deg: float = Field(3.0, gt=0, le=90)
+    min_rest_s: float = Field(0.0, ge=0)
     solver: str = "ellipsoid_cholesky"
     solver_params: dict = Field(default_factory=dict)
 
+    @model_validator(mode="after")
+    def _x_needs_y(self) -> AccelParams:
+        if (self.x_up_rest is not None or self.x_up_time_s is not None) and \
+                self.y_up_rest is None and self.y_up_time_s is None:
+            raise ValueError("x_up_rest / x_up_time_s given without y_up_rest / y_up_time_s: the "
+                             "X-up rest only fixes the turn about the Y-up axis (eq. 19); give "
+                             "the Y-up rest too, or drop the X-up one")
+        return self
 
-def reference_rests(rests: Rests, p: AccelParams) -> tuple[int | None, int | None, str]:
-    """(y_up, x_up, how) indices into ``rests``."""
+
+def reference_rests(rests: Rests, p: AccelParams, usable: np.ndarray) -> tuple[int | None, int | None, str]:
+    """(y_up, x_up, how) indices into ``rests`` (all of the segmentation's); detection
+    looks only at the ``usable`` (n,) bool rests."""
+    n = len(rests)
+    for key in ("y_up_rest", "x_up_rest"):
+        i = getattr(p, key)
+        if i is not None and i >= n:
+            raise ConfigError(f"calibrate_accel: {key} = {i} but the segmentation found {n} rests "
+                              f"(valid indices 0..{n - 1}); check the rests table or use "
+                              f"{key.replace('_rest', '_time_s')}")
     y_up, x_up = p.y_up_rest, p.x_up_rest
     if y_up is None and p.y_up_time_s is not None:
         y_up = rest_at_time(rests, p.y_up_time_s)
@@ -67,25 +86,33 @@ def reference_rests(rests: Rests, p: AccelParams) -> tuple[int | None, int | Non
         length = rests.t_end_s - rests.t_start_s
         found = []
         for axis in (1, 0):
-            near = np.flatnonzero(np.degrees(np.arccos(np.clip(u[:, axis], -1, 1))) <= p.detect_tol_deg)
+            near = np.flatnonzero(usable & (np.degrees(np.arccos(np.clip(u[:, axis], -1, 1)))
+                                            <= p.detect_tol_deg))
             found.append(int(near[np.argmax(length[near])]) if len(near) else None)
         return found[0], found[1] if found[0] is not None else None, "detected"
     return None, None, "none"
 
 
 def calibrate_accel(inputs: Mapping[str, pa.Table], params: AccelParams, solver: BoundSolver | None):
-    rests = Rests.from_table(inputs["rests"])
-    rests = rests.subset((rests.t_end_s - rests.t_start_s) >= params.min_rest_s)
+    all_rests = Rests.from_table(inputs["rests"])
+    all_rests.need("accel")
+    keep = (all_rests.t_end_s - all_rests.t_start_s) >= params.min_rest_s
+    y_up_all, x_up_all, how = reference_rests(all_rests, params, keep)
+    refs = [i for i in (y_up_all, x_up_all) if i is not None]
+    keep[refs] = True  # chosen reference rests stay in whatever their length
+    rests = all_rests.subset(keep)
+    position = np.cumsum(keep) - 1  # index among the kept rests
+    y_up, x_up = (None if i is None else int(position[i]) for i in (y_up_all, x_up_all))
     y_raw = rests.need("accel")
     k, sigma_k = thermal_k(inputs, "accel")
     y = y_raw - np.outer(dT(rests.temperature), k)
-    y_up, x_up, how = reference_rests(rests, params)
     obs = EllipsoidObservations("accel", y, rests.cov_of_mean("accel"), rests.temperature,
                                 params.g_m_s2, y_up, x_up)
     fit = solver.solve(obs)
     fit = add_thermal_variance(fit, rests.temperature, sigma_k)
     cal = fit.to_calibration("accel", solver.solver.name, k=k, sigma_k=sigma_k, extra={
-        "reference_rests": {"y_up": y_up, "x_up": x_up, "how": how},
+        "reference_rests": {"y_up": y_up_all, "x_up": x_up_all, "how": how,
+                            "index_into": "the segmentation's rests table"},
         "noise": noise_details(rests, "accel"), "g_m_s2": params.g_m_s2,
     })
     x = cal.apply(y_raw, model_T(rests.temperature))
@@ -100,7 +127,7 @@ def calibrate_accel(inputs: Mapping[str, pa.Table], params: AccelParams, solver:
 
 
 STAGE = Stage(
-    name="calibrate_accel", version="1", func=calibrate_accel,
+    name="calibrate_accel", version="2", func=calibrate_accel,
     inputs={"rests": "rests", "thermal": "calibration"},
     outputs={"calibration": "calibration", "residuals": "residuals"}, params=AccelParams,
     optional_inputs=frozenset({"thermal"}), solver_kind="accel",

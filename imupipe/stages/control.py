@@ -15,10 +15,10 @@ from typing import Literal
 
 import numpy as np
 import pyarrow as pa
+from pydantic import Field
 
 from .. import schemas
 from ..components import Params, Stage
-from ..errors import ConfigError
 from ..models import Calibration, TriadCalibration
 from ..observations import Rests, Turns
 from ..rotations import carry, pad_turns, rotation_angle, turn_rotations
@@ -81,21 +81,17 @@ class SplitParams(Params):
     mode: Literal["interleaved", "time"] = "interleaved"
     """interleaved: every ``every``-th turn is held out (rests shared); time: the last
     ``fraction`` of the session (rests and turns) is the control set."""
-    every: int = 4
-    fraction: float = 0.3
+    every: int = Field(4, ge=2)
+    fraction: float = Field(0.3, gt=0, lt=1)
 
 
 def split_control(inputs: Mapping[str, pa.Table], params: SplitParams, solver=None) -> dict[str, pa.Table]:
     rests_t, turns_t = inputs["rests"], inputs["turns"]
     m = turns_t.num_rows
     if params.mode == "interleaved":
-        if params.every < 2:
-            raise ConfigError(f"split_control: every = {params.every}; use 2 or more")
         control = (np.arange(m) % params.every) == params.every - 1
         return {"rests": rests_t, "turns": _turn_rows(turns_t, ~control, None),
                 "control_rests": rests_t, "control_turns": _turn_rows(turns_t, control, None)}
-    if not 0.0 < params.fraction < 1.0:
-        raise ConfigError(f"split_control: fraction = {params.fraction}; use a value in (0, 1)")
     rests = Rests.from_table(rests_t)
     t_cut = rests.t_start_s[0] + (1 - params.fraction) * (rests.t_end_s[-1] - rests.t_start_s[0])
     cal_rest = rests.t_end_s <= t_cut

@@ -5,8 +5,10 @@ in the accelerometer's instrument frame. With the thermal stage wired, the rest
 means and the turns' rates are handed to the solver with ``k (T - 25)`` removed
 (a turn at the mean temperature of its two rests), so the bias the solver returns,
 by whatever rule it has, is the bias at T_ref.
-Residuals: per rest, the measured gyro mean vs the bias model; per turn, gravity
-after the turn vs gravity before rotated by the calibrated gyro.
+Residuals test the exported calibration (its forward model): per rest, the measured
+gyro mean vs ``cal.bias(T)``; per turn, gravity after the turn vs gravity before
+rotated by the gyro corrected with ``cal.M`` and ``cal.bias(T)`` (T of the turn: the
+mean of its two rests), not by the rests' own means.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import pyarrow as pa
 from pydantic import Field
 
 from ..components import BoundSolver, Params, Stage
+from ..errors import ConfigError
 from ..models import triads_to_table
 from ..observations import GyroObservations, Rests, Turns
 from ..rotations import carry, hold_intervals, pad_turns, turn_rotations
@@ -34,17 +37,18 @@ from ._calib_common import (
 
 
 class GyroParams(Params):
-    """``roll_turn``: index of the paper's scale turn (eq. 37), None: scale from all turns;
+    """``roll_turn``: index of the paper's scale turn (eq. 37) into the segmentation's turns
+    table (before ``max_turn_s``), None: scale from all turns;
     ``roll_turn_time_s``: or a time inside it (s since the session start);
     ``detect_roll_turn``: otherwise take a turn from instrument Y up to Z down (corrected
     gravity within ``detect_tol_deg`` of +Y before and -Z after, eq. 37), if there is one;
     ``max_turn_s``: motions longer than this (e.g. a carry to the turntable) are left out."""
 
-    roll_turn: int | None = None
+    roll_turn: int | None = Field(None, ge=0)
     roll_turn_time_s: float | None = None
     detect_roll_turn: bool = False
-    detect_tol_deg: float = 5.0
-    max_turn_s: float = 30.0
+    detect_tol_deg: float = Field(5.0, gt=0, le=90)
+    max_turn_s: float = Field(30.0, gt=0)
     solver: str = "gyro_rodrigues"
     solver_params: dict = Field(default_factory=dict)
 
@@ -69,6 +73,10 @@ def find_roll_turn(turns: Turns, gravity: np.ndarray, tol_deg: float) -> int | N
 def turn_subset(turns: Turns, p: GyroParams, gravity: np.ndarray) -> tuple[Turns, int | None]:
     keep = np.array([len(t) > 1 and (t[-1] - t[0]) <= p.max_turn_s for t in turns.t], dtype=bool)
     roll = p.roll_turn
+    if roll is not None and roll >= len(turns):
+        raise ConfigError(f"calibrate_gyro: roll_turn = {roll} but the segmentation found "
+                          f"{len(turns)} turns (valid indices 0..{len(turns) - 1}); check the "
+                          "turns table or use roll_turn_time_s")
     if roll is None and p.roll_turn_time_s is not None:
         inside = [j for j, t in enumerate(turns.t) if len(t) and t[0] <= p.roll_turn_time_s <= t[-1]]
         roll = inside[0] if inside else None
@@ -102,7 +110,8 @@ def calibrate_gyro(inputs: Mapping[str, pa.Table], params: GyroParams, solver: B
                               cal.bias(model_T(rests.temperature)), sigma)
     # per turn: gravity after vs gravity before carried through the calibrated rotation
     rate, dt = pad_turns(turns.t, turns.gyro, hold_intervals)
-    rate = (rate - 0.5 * (bias[turns.before] + bias[turns.after])[:, None, :]) @ cal.M.T
+    T_turn = model_T(0.5 * (rests.temperature[turns.before] + rests.temperature[turns.after]))
+    rate = (rate - cal.bias(T_turn)[:, None, :]) @ cal.M.T
     g0, g1 = gravity[turns.before], gravity[turns.after]
     pred = carry(turn_rotations(rate, dt), g0)
     res_turn = residual_table("calibrate_gyro", "gyro", "turn",
@@ -122,7 +131,7 @@ def without_thermal(turns: Turns, T: np.ndarray, k: np.ndarray) -> Turns:
 
 
 STAGE = Stage(
-    name="calibrate_gyro", version="2", func=calibrate_gyro,
+    name="calibrate_gyro", version="3", func=calibrate_gyro,
     inputs={"rests": "rests", "turns": "turns", "gyro": "gyro", "accel": "calibration",
             "thermal": "calibration"},
     outputs={"calibration": "calibration", "residuals": "residuals"}, params=GyroParams,

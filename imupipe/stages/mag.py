@@ -15,7 +15,7 @@ from collections.abc import Mapping
 
 import numpy as np
 import pyarrow as pa
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from ..components import BoundSolver, Params, Stage
 from ..models import triads_to_table
@@ -38,12 +38,20 @@ class MagParams(Params):
     positive downward (None: measured); ``circle_windows_s``: [[start, end], ...] s
     since the session start, each one full turn of the rig base."""
 
-    field_T: float | None = None
-    dip_deg: float | None = None
+    field_T: float | None = Field(None, gt=0)
+    dip_deg: float | None = Field(None, ge=-90, le=90)
     circle_windows_s: tuple[tuple[float, float], ...] = ()
-    min_rest_s: float = 0.0
+    min_rest_s: float = Field(0.0, ge=0)
     solver: str = "ellipsoid_dip"
     solver_params: dict = Field(default_factory=dict)
+
+    @field_validator("circle_windows_s")
+    @classmethod
+    def _ordered(cls, v: tuple[tuple[float, float], ...]) -> tuple[tuple[float, float], ...]:
+        for a, b in v:
+            if not a < b:
+                raise ValueError(f"window [{a}, {b}]: need start < end (s)")
+        return v
 
 
 def calibrate_mag(inputs: Mapping[str, pa.Table], params: MagParams, solver: BoundSolver | None):

@@ -14,6 +14,7 @@ from collections.abc import Mapping
 
 import numpy as np
 import pyarrow as pa
+from pydantic import Field
 
 from .. import schemas
 from ..components import BoundSolver, Params, Stage
@@ -30,14 +31,14 @@ class SegmentParams(Params):
     ``noise_quantile``: the quantile of windowed variance taken as noise when robust;
     ``trim_s``: dropped from both ends of each rest."""
 
-    window_s: float = 1.0
-    min_rest_s: float = 2.0
-    max_gap_s: float = 0.5
-    accel_threshold: float = 4.0
-    gyro_threshold: float = 4.0
-    initial_rest_s: float = 0.0
-    noise_quantile: float = 0.1
-    trim_s: float = 0.0
+    window_s: float = Field(1.0, gt=0)
+    min_rest_s: float = Field(2.0, ge=0)
+    max_gap_s: float = Field(0.5, gt=0)
+    accel_threshold: float = Field(4.0, gt=0)
+    gyro_threshold: float = Field(4.0, gt=0)
+    initial_rest_s: float = Field(0.0, ge=0)
+    noise_quantile: float = Field(0.1, ge=0, le=1)
+    trim_s: float = Field(0.0, ge=0)
 
 
 def xyz(table: pa.Table) -> tuple[np.ndarray, np.ndarray]:
@@ -164,7 +165,7 @@ def turns_table(rests: Rests, t_g: np.ndarray, w: np.ndarray, t0: int) -> pa.Tab
 
 
 STAGE = Stage(
-    name="segment_stillness", version="1", func=segment,
+    name="segment_stillness", version="2", func=segment,
     inputs={"accel": "accel", "gyro": "gyro", "mag": "mag", "temperature": "temperature"},
     outputs={"rests": "rests", "turns": "turns"}, params=SegmentParams,
     optional_inputs=frozenset({"mag", "temperature"}),

@@ -15,7 +15,7 @@ from typing import Literal
 
 import numpy as np
 import pyarrow as pa
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from ..components import BoundSolver, Params, Stage
 from ..errors import SolverError
@@ -32,12 +32,19 @@ class ThermalParams(Params):
     identify k (too short or too little heating), raise (``error``) or warn and pass
     ``k = 0`` on (``zero``)."""
 
-    average_s: float = 1.0
+    average_s: float = Field(1.0, gt=0)
     warmup_window_s: tuple[float, float] | None = None
-    sensors: tuple[str, ...] = ("accel", "gyro", "mag")
+    sensors: tuple[Literal["accel", "gyro", "mag"], ...] = ("accel", "gyro", "mag")
     on_insufficient: Literal["error", "zero"] = "error"
     solver: str = "thermal_kalman"
     solver_params: dict = Field(default_factory=dict)
+
+    @field_validator("warmup_window_s")
+    @classmethod
+    def _ordered(cls, v: tuple[float, float] | None) -> tuple[float, float] | None:
+        if v is not None and not 0 <= v[0] < v[1]:
+            raise ValueError(f"[start, end] = {list(v)}: need 0 <= start < end (s)")
+        return v
 
 
 def bin_average(t_s: np.ndarray, v: np.ndarray, width: float) -> tuple[np.ndarray, np.ndarray]:
@@ -108,7 +115,7 @@ def fit_thermal(inputs: Mapping[str, pa.Table], params: ThermalParams, solver: B
         triads.append(TriadFit(np.eye(3), fit.b0 if keep_b0 else np.zeros(3), np.zeros((12, 12)))
                       .to_calibration(sensor, solver.solver.name, k=fit.k, sigma_k=sd[3:],
                                       extra=details))
-        pred = fit.b0 + np.outer(Tm - 25.0, fit.k)
+        pred = fit.b0 + np.outer(Tm - obs.T_ref_C, fit.k)
         residuals.append(residual_table("fit_thermal", sensor, "average", tm, Tm, vm, pred,
                                         np.tile(obs.sigma, (len(tm), 1))))
     if not residuals:

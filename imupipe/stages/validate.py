@@ -1,7 +1,9 @@
 """Turn validation of method A: Rodrigues error (eq. 38) and turn-angle error (eq. 39).
 
 For every turn, before calibration (raw accel directions, raw gyro minus the
-rests' bias, identity M) and after (calibrated accel and gyro). A turn is
+rests' bias, identity M) and after (the exported accel and gyro calibrations: the
+gyro corrected with its ``M`` and ``bias(T)`` at the turn's temperature, the forward
+model, not the rests' own means). A turn is
 informative when it tilts gravity by at least ``min_tilt_deg`` (eq. 39 divides
 by ``|e x (g1 + g0)|``); it is accepted when its angle error after calibration
 is below ``tolerance_deg`` (the paper: 0.1 deg). The verdict and RMS values are
@@ -16,6 +18,7 @@ from collections.abc import Mapping
 
 import numpy as np
 import pyarrow as pa
+from pydantic import Field
 
 from .. import schemas
 from ..components import BoundSolver, Params, Stage
@@ -31,9 +34,9 @@ class ValidateParams(Params):
     gravity tilts make eq. (39) undefined; ``max_turn_deg``: larger turns (repositioning,
     turntable) are reported but not judged."""
 
-    tolerance_deg: float = 0.1
-    min_tilt_deg: float = 0.5
-    max_turn_deg: float = 60.0
+    tolerance_deg: float = Field(0.1, gt=0)
+    min_tilt_deg: float = Field(0.5, ge=0, le=180)
+    max_turn_deg: float = Field(60.0, gt=0)
 
 
 def turn_errors(rests: Rests, turns: Turns, acc: TriadCalibration | None,
@@ -43,10 +46,14 @@ def turn_errors(rests: Rests, turns: Turns, acc: TriadCalibration | None,
     a = rests.need("accel")
     g = acc.apply(a, model_T(rests.temperature)) if acc is not None else a
     g = g / np.linalg.norm(g, axis=1, keepdims=True)
-    M = gyr.M if gyr is not None else np.eye(3)
-    bias = rests.need("gyro")
+    w = rests.need("gyro")
+    if gyr is not None:
+        T = rests.temperature
+        M, bias = gyr.M, gyr.bias(model_T(0.5 * (T[turns.before] + T[turns.after])))
+    else:
+        M, bias = np.eye(3), 0.5 * (w[turns.before] + w[turns.after])
     rate, dt = pad_turns(turns.t, turns.gyro, hold_intervals)
-    q = turn_quaternions((rate - 0.5 * (bias[turns.before] + bias[turns.after])[:, None, :]) @ M.T, dt)
+    q = turn_quaternions((rate - bias[:, None, :]) @ M.T, dt)
     q = q * np.where(q[:, :1] < 0, -1.0, 1.0)
     Y = q[:, 1:] / np.where(np.abs(q[:, :1]) > 1e-12, q[:, :1], 1e-12)  # e tan(chi/2)
     g0, g1 = g[turns.before], g[turns.after]
@@ -100,7 +107,7 @@ def validate(inputs: Mapping[str, pa.Table], params: ValidateParams, solver: Bou
 
 
 STAGE = Stage(
-    name="validate_turns", version="1", func=validate,
+    name="validate_turns", version="2", func=validate,
     inputs={"rests": "rests", "turns": "turns", "gyro": "gyro", "accel": "calibration",
             "gyro_cal": "calibration"},
     outputs={"report": "validation"}, params=ValidateParams,
