@@ -65,7 +65,12 @@ class Recording:
 
 @runtime_checkable
 class Reader(Protocol):
-    """Turns one file into a ``Recording``. After the reader, nothing knows the format."""
+    """Turns one file into a ``Recording``. After the reader, nothing knows the format.
+
+    Optional: ``delegates(path) -> list[str]``, the other registered readers this
+    reader hands parts of ``path`` to (a session manifest's ``reader = ...``);
+    their distributions and versions enter the cache key like the reader's own.
+    """
 
     name: str
     suffixes: tuple[str, ...]  # lower case, with the dot: (".mcap",)
@@ -148,7 +153,11 @@ class BoundSolver:
 
 @runtime_checkable
 class Exporter(Protocol):
-    """Writes results of a run to files (``calibration.json``, reports, ...)."""
+    """Writes results of a run to files (``calibration.json``, reports, ...).
+
+    Optional: ``writes``, the names under ``out_dir`` it writes (files or folders),
+    removed when a rerun of the session fails so nothing stale claims success.
+    """
 
     name: str
 

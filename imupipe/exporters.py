@@ -1,13 +1,16 @@
 """Built-in exporters: ``calibration.json`` (``spec/contracts.md``).
 
 An exporter receives the tables a pipeline's ``[export]`` section names (in
-that order), a context (``session``, ``pipeline``, ``imupipe_version`` and
-notes such as skipped stages) and an output directory, and writes files there
-atomically.
+that order), a context (``session``, ``pipeline``, ``imupipe_version``, notes
+such as skipped stages, and ``raw_units``: stream -> unit of raw values a reader
+left unconverted, e.g. ``{"accel": "counts"}``) and an output directory, and
+writes files there atomically. An exporter may list the names it writes under
+the directory in ``writes`` (a failed rerun removes them).
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -17,7 +20,7 @@ import pyarrow as pa
 from .errors import SolverError
 from .hookspecs import hookimpl
 from .io import write_text
-from .models import Calibration
+from .models import SENSORS, UNITS, Calibration
 
 CONTEXT_KEYS = ("session", "pipeline", "imupipe_version")
 
@@ -27,6 +30,7 @@ class CalibrationJson:
 
     name = "calibration_json"
     filename = "calibration.json"
+    writes = (filename,)
 
     def export(
         self, results: Mapping[str, pa.Table], context: Mapping[str, Any], out_dir: Path
@@ -44,9 +48,30 @@ class CalibrationJson:
             raise SolverError(
                 f"{context.get('session', '?')}: the calibration tables hold no triad"
             )
+        doc = with_raw_units(calibration.to_dict(), context.get("raw_units") or {})
         path = Path(out_dir) / self.filename
-        write_text(path, calibration.to_json())
+        write_text(path, json.dumps(doc, indent=2) + "\n")
         return [path]
+
+
+def with_raw_units(doc: dict[str, Any], raw_units: Mapping[str, str]) -> dict[str, Any]:
+    """Say per triad in which unit ``b0`` and ``k`` are (and ``M`` maps from): ``raw_units``.
+
+    ``units`` is what ``M`` corrects to (SI); the raw unit is SI too unless the
+    reader left the values unconverted (a manifest's ``unit = "counts"``).
+    """
+    for sensor in SENSORS:
+        if sensor not in doc:
+            continue
+        raw, si = raw_units.get(sensor, UNITS[sensor]), UNITS[sensor]
+        doc[sensor]["raw_units"] = raw
+        if raw != si:
+            doc[sensor]["raw_units_note"] = (
+                f"b0 in {raw}, k in {raw}/degC; M maps {raw} to {si}"
+            )
+    if raw_units.get("temperature", "degC") != "degC":
+        doc["temperature_raw_units"] = raw_units["temperature"]
+    return doc
 
 
 COMPONENTS: list = [CalibrationJson()]

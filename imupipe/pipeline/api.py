@@ -16,6 +16,7 @@ from __future__ import annotations
 import glob
 import hashlib
 import logging
+import shutil
 import traceback
 import warnings
 from collections.abc import Sequence
@@ -26,8 +27,8 @@ from .. import __version__
 from ..errors import ImupipeError, MissingExtraError
 from ..plugins import Registry, make_registry
 from ..progress import progress
-from .cache import Cache, read_manifest
-from .config import load_pipeline
+from .cache import Cache, read_manifest, reader_identity
+from .config import default_pipeline_path, load_pipeline
 from .dag import Pipeline
 from .runner import SessionRun, run_session
 from .status import render, stage_states
@@ -101,20 +102,41 @@ def process_session(
 ) -> Path | None:
     """Run ``pipeline`` on one session and export; return the calibration.json written (if any).
 
-    On failure nothing is left claiming success: the session's calibration.json and a
-    report of an earlier run are removed (run.json records the error for ``status``).
+    On failure nothing is left claiming success: what this pipeline's exporters
+    write (calibration.json; the report's report.md and figures/) is removed if an
+    earlier run left it (run.json records the error for ``status``).
     """
     run_dir = Path(out) / session_id
-    calibration = run_dir / CALIBRATION
     try:
         run = run_session(
             session, pipeline, registry, Cache(Path(out) / CACHE_DIR), run_dir / MANIFEST, on_stage
         )
         return _export(run, registry, run_dir)
     except BaseException:
-        calibration.unlink(missing_ok=True)
-        (run_dir / "report.md").unlink(missing_ok=True)
+        for name in _export_names(pipeline, registry):
+            _remove(run_dir / name)
         raise
+
+
+# what the report exporter writes when it does not say (its optional ``writes`` attribute)
+REPORT_WRITES = ("report.md", "figures")
+
+
+def _export_names(pipeline: Pipeline, registry: Registry) -> list[str]:
+    """Names under the session's folder that the pipeline's exporters write."""
+    names = []
+    if pipeline.export_calibration:
+        names.append(CALIBRATION)
+    if pipeline.export_reports and "report" in registry.names("exporters"):
+        names += getattr(registry.get("exporters", "report"), "writes", REPORT_WRITES)
+    return names
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
 
 
 def _export(run: SessionRun, registry: Registry, run_dir: Path) -> Path | None:
@@ -124,6 +146,7 @@ def _export(run: SessionRun, registry: Registry, run_dir: Path) -> Path | None:
         "pipeline": pipeline.name,
         "imupipe_version": __version__,
         "skipped": run.skipped,
+        "raw_units": run.raw_units,  # stream -> unit of raw values not in SI ("counts")
     }
     written = None
     if pipeline.export_calibration:
@@ -332,10 +355,29 @@ def status(
 ) -> str:
     """``imupipe status``: per session, which stages are stale and why; nothing runs.
 
-    With no sessions, those recorded in ``out`` (their run manifests).
+    With no sessions, those recorded in ``out`` (their run manifests). With no
+    ``pipeline``, each session is compared with the pipeline its run.json names
+    (the default pipeline for a session never run, or when that file is gone).
     """
     registry = registry or make_registry()
-    spec = load_pipeline(pipeline, registry)
+    given = load_pipeline(pipeline, registry) if pipeline is not None else None
+    loaded: dict[str, Pipeline] = {}
+
+    def pipeline_for(manifest: dict | None) -> tuple[Pipeline, str]:
+        if given is not None:
+            return given, ""
+        recorded = ((manifest or {}).get("pipeline") or {}).get("path")
+        if recorded and Path(recorded).is_file():
+            key, note = str(Path(recorded).resolve()), f" from run.json: {recorded}"
+        else:
+            key = str(default_pipeline_path())
+            note = (
+                f" (default; {recorded} recorded in run.json is gone)" if recorded else " (default)"
+            )
+        if key not in loaded:
+            loaded[key] = load_pipeline(Path(key), registry)
+        return loaded[key], note
+
     out = Path(out)
     sessions = [Path(s) for s in sessions]
     if sessions:
@@ -352,9 +394,20 @@ def status(
     blocks = []
     for session, sid in pairs:
         manifest = read_manifest(out / sid / MANIFEST)
-        states = stage_states(spec, session, manifest, cache)
-        blocks.append(render(session, spec, states, out / sid))
+        spec, note = pipeline_for(manifest)
+        states = stage_states(spec, session, manifest, cache, _reader_now(session, spec, registry))
+        blocks.append(render(session, spec, states, out / sid, note))
     return "\n".join(blocks)
+
+
+def _reader_now(session: Path, pipeline: Pipeline, registry: Registry) -> dict | str | None:
+    """The reader that would read ``session`` now, or why none would."""
+    if not Path(session).is_file():
+        return None
+    try:
+        return reader_identity(registry, Path(session), pipeline.reader)
+    except ImupipeError as exc:
+        return f"cannot be read: {exc}"
 
 
 __all__ = [

@@ -1,23 +1,30 @@
 """The content-addressed cache of stage outputs, and the run manifest of a session.
 
 A stage run's key is the sha256 of the canonical JSON of its ``KeyParts``: the
-registered stage name and version, its validated params, its solver (name,
-version, params) and the content digests of its inputs. A raw input's digest
-is made from the session file(s) and the stream name; an upstream input's digest
-is the upstream *output* digest, so an upstream rerun that produces the same
-table invalidates nothing downstream (early cutoff).
+registered stage name and version, the plugin distribution that provides it
+(name and version; none for imupipe's own stages, which are versioned by their
+``version``), its validated params, its solver (name, version, distribution,
+params) and the content digests of its inputs. A raw input's digest is made
+from the session file(s), the stream name and the reader that turns them into
+tables (its name, distribution and version, and those of any reader a session
+manifest delegates to); an upstream input's digest is the upstream *output*
+digest, so an upstream rerun that produces the same table invalidates nothing
+downstream (early cutoff).
 
 Layout under ``<out>/.cache/``::
 
     <key[:2]>/<key>/<port>.arrow     outputs, provenance in schema metadata
-    <key[:2]>/<key>/outputs.json     port -> output digest; written last (the entry is complete)
+    <key[:2]>/<key>/outputs.json     port -> output digest, the stage's warnings; written
+                                     last (the entry is complete)
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
 import tomllib
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -27,10 +34,12 @@ import pyarrow as pa
 from .. import __version__
 from ..errors import ImupipeError
 from ..io import file_digest, read_arrow, table_digest, write_arrow, write_text
+from ..plugins import Registry
 from .dag import Node
 
 PROVENANCE_KEY = b"imupipe.provenance"
 MANIFEST_FORMAT = 1
+OWN_DISTRIBUTION = "imupipe"  # its components are versioned by their own ``version``
 
 
 def canonical(obj: Any) -> str:
@@ -79,16 +88,76 @@ def _strings(obj: Any):
 def session_digest(path: Path) -> str:
     """Digest of a session's bytes (all its files, see ``session_files``)."""
     path = Path(path)
-    parts = [
-        [str(f.relative_to(path.parent)) if f != path else "", file_digest(f)]
-        for f in session_files(path)
-    ]
+    parts = [[_relative(f, path.parent) if f != path else "", file_digest(f)]
+             for f in session_files(path)]
     return sha256(canonical(sorted(parts)))
 
 
-def stream_digest(session: str, device: str | None, stream: str) -> str:
-    """The digest of raw input ``session.<stream>`` of one device of a session."""
-    return sha256(canonical({"session": session, "device": device, "stream": stream}))
+def _relative(file: Path, folder: Path) -> str:
+    """``file`` as the manifest names it relative to ``folder`` (absolute if on another drive)."""
+    try:
+        return os.path.relpath(file, folder)
+    except ValueError:  # Windows: another drive
+        return str(file.resolve())
+
+
+def stream_digest(session: str, device: str | None, stream: str, reader: dict | None) -> str:
+    """The digest of raw input ``session.<stream>`` of one device of a session.
+
+    ``reader``: ``reader_identity`` of the reader that turns the session into tables.
+    """
+    return sha256(
+        canonical({"session": session, "device": device, "stream": stream, "reader": reader})
+    )
+
+
+# --------------------------------------------------------------------------- plugin versions
+
+
+def distribution(registry: Registry, kind: str, name: str) -> dict | None:
+    """``{"name", "version"}`` of the plugin distribution providing a component.
+
+    None for imupipe's own components (their ``version`` attribute keys them, so a
+    release does not rerun everything) and for plugins registered without one
+    (e.g. a test's fixture module).
+    """
+    component = registry.components[kind].get(name)
+    if component is None or not component.distribution:
+        return None
+    if component.distribution == OWN_DISTRIBUTION:
+        return None
+    return {"name": component.distribution, "version": component.dist_version}
+
+
+def reader_identity(registry: Registry, path: Path, forced: str | None) -> dict:
+    """What makes a session's tables besides its bytes: the reader chosen for ``path``.
+
+    ``{"name", "distribution", "version", "delegates": [...]}``: the reader's
+    distribution and version, imupipe's own included (readers have no version of
+    their own, so a fix in a built-in reader reaches the cache only this way),
+    and the same for every reader a session manifest hands files to
+    (the reader's optional ``delegates(path)``). Chosen by sniffing, nothing is read.
+    """
+    from ..ingest import choose_reader
+
+    reader = choose_reader(Path(path), registry, forced)
+    identity = _reader_entry(registry, reader.name)
+    delegates = getattr(reader, "delegates", None)
+    if callable(delegates):
+        identity["delegates"] = [_reader_entry(registry, n) for n in sorted(set(delegates(path)))]
+    return identity
+
+
+def _reader_entry(registry: Registry, name: str) -> dict:
+    component = registry.components["readers"].get(name)
+    if component is None:  # a manifest may name a reader only the installed plugins provide
+        from ..plugins import make_registry
+
+        component = make_registry().components["readers"].get(name)
+    if component is None:
+        return {"name": name, "distribution": "", "version": ""}
+    return {"name": name, "distribution": component.distribution,
+            "version": component.dist_version}
 
 
 # --------------------------------------------------------------------------- keys
@@ -101,8 +170,9 @@ class KeyParts:
     stage: str
     version: str
     params: dict
-    solver: dict | None
+    solver: dict | None  # name, version, distribution, params
     inputs: dict  # port -> content digest
+    distribution: dict | None = None  # a plugin stage's {"name", "version"}; None: built in
 
     @property
     def key(self) -> str:
@@ -113,7 +183,10 @@ class KeyParts:
 
     @classmethod
     def from_dict(cls, d: dict) -> KeyParts:
-        return cls(d["stage"], d["version"], d["params"], d.get("solver"), d["inputs"])
+        return cls(
+            d["stage"], d["version"], d["params"], d.get("solver"), d["inputs"],
+            d.get("distribution"),
+        )
 
 
 def key_parts(node: Node, inputs: dict[str, str]) -> KeyParts:
@@ -126,6 +199,7 @@ def key_parts(node: Node, inputs: dict[str, str]) -> KeyParts:
         solver = {
             "name": s.name,
             "version": str(s.version),
+            "distribution": node.solver_distribution,
             "params": node.solver.params.model_dump(mode="json"),
         }
     # normalise through JSON so tuples/lists and the manifest's copy compare equal
@@ -135,6 +209,7 @@ def key_parts(node: Node, inputs: dict[str, str]) -> KeyParts:
         json.loads(canonical(params)),
         solver,
         dict(sorted(inputs.items())),
+        node.distribution,
     )
 
 
@@ -152,14 +227,21 @@ class Cache:
 
     def digests(self, key: str) -> dict[str, str] | None:
         """Output digests of a complete entry, or None when the key was never stored."""
+        entry = self.entry(key)
+        return None if entry is None else entry["outputs"]
+
+    def entry(self, key: str) -> dict | None:
+        """A complete entry's index (``outputs``: port -> digest, ``warnings``), or None."""
         index = self._dir(key) / "outputs.json"
         try:
-            outputs = json.loads(index.read_text())["outputs"]
-        except (FileNotFoundError, json.JSONDecodeError, KeyError):
+            entry = json.loads(index.read_text())
+            outputs = entry["outputs"]
+        except (FileNotFoundError, json.JSONDecodeError, KeyError, TypeError):
             return None
         if not all((self._dir(key) / f"{port}.arrow").is_file() for port in outputs):
             return None
-        return outputs
+        entry.setdefault("warnings", [])
+        return entry
 
     def load(self, key: str, port: str) -> pa.Table:
         """An output as the stage returned it (provenance stripped)."""
@@ -174,9 +256,13 @@ class Cache:
         return table.replace_schema_metadata(meta or None)
 
     def store(
-        self, parts: KeyParts, outputs: dict[str, pa.Table], stage_key: str
+        self,
+        parts: KeyParts,
+        outputs: dict[str, pa.Table],
+        stage_key: str,
+        warnings: Sequence[str] = (),
     ) -> dict[str, str]:
-        """Write the outputs of one stage run; return port -> output digest."""
+        """Write the outputs of one stage run and the warnings it gave; return port -> digest."""
         key = parts.key
         digests = {port: table_digest(table) for port, table in outputs.items()}
         for port, table in outputs.items():
@@ -195,7 +281,11 @@ class Cache:
             write_arrow(self._dir(key) / f"{port}.arrow", table.replace_schema_metadata(meta))
         write_text(
             self._dir(key) / "outputs.json",
-            json.dumps({"key": key, "parts": parts.to_dict(), "outputs": digests}, indent=1),
+            json.dumps(
+                {"key": key, "parts": parts.to_dict(), "outputs": digests,
+                 "warnings": list(warnings)},
+                indent=1,
+            ),
         )
         return digests
 

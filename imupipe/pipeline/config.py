@@ -20,6 +20,7 @@ from ..errors import ConfigError, PluginError, describe_validation
 from ..plugins import Registry
 from ..resources import shipped_dir
 from . import dag
+from .cache import distribution
 
 _KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_-]*$")
 
@@ -103,7 +104,19 @@ def load_pipeline(path: Path | str | None, registry: Registry) -> dag.Pipeline:
             port: dag.parse_ref(text, f"{path}: {where}.inputs.{port}")
             for port, text in section.inputs.items()
         }
-        nodes.append(dag.Node(key, stage, params, solver, inputs))
+        nodes.append(
+            dag.Node(
+                key,
+                stage,
+                params,
+                solver,
+                inputs,
+                distribution=distribution(registry, "stages", section.uses),
+                solver_distribution=(
+                    distribution(registry, "solvers", solver.solver.name) if solver else None
+                ),
+            )
+        )
         wiring[key] = f"{where}.inputs"
     pipeline = dag.build(
         path,

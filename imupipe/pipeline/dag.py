@@ -44,6 +44,10 @@ class Node:
     params: Params
     solver: BoundSolver | None
     inputs: Mapping[str, Ref]  # port -> reference
+    # {"name", "version"} of the plugin distribution providing the stage / solver (cache keys);
+    # None for imupipe's own components
+    distribution: Mapping | None = None
+    solver_distribution: Mapping | None = None
 
 
 @dataclass(frozen=True)

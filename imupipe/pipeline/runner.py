@@ -6,6 +6,10 @@ table against the schema the stage declares, calls ``func(inputs, params,
 solver)``, checks the outputs and stores them. The recording is read only when
 a stage has to run. Stages whose required session streams are missing are
 skipped with everything downstream (a logged note, and a line in the manifest).
+
+Warnings a stage gives (``warnings.warn``) are caught, logged as one line each
+(``<stage>: <message>``), recorded in the run manifest and in the cache entry,
+and logged again whenever the entry is reused.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ from __future__ import annotations
 import copy
 import logging
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,7 +29,15 @@ from .. import __version__, schemas
 from ..errors import ImupipeError, SchemaError
 from ..ingest import read_recording
 from ..plugins import Registry
-from .cache import Cache, key_parts, read_manifest, session_digest, stream_digest, write_manifest
+from .cache import (
+    Cache,
+    key_parts,
+    read_manifest,
+    reader_identity,
+    session_digest,
+    stream_digest,
+    write_manifest,
+)
 from .dag import Node, Pipeline, Ref
 
 log = logging.getLogger("imupipe.pipeline")
@@ -40,6 +53,7 @@ class StageRecord:
     outputs: dict[str, str] = field(default_factory=dict)  # port -> digest
     reason: str = ""
     seconds: float = 0.0
+    warnings: list[str] = field(default_factory=list)  # what the stage warned (also if cached)
 
     def to_dict(self) -> dict:
         return {
@@ -49,6 +63,7 @@ class StageRecord:
             "outputs": self.outputs,
             "reason": self.reason,
             "seconds": round(self.seconds, 6),
+            "warnings": list(self.warnings),
         }
 
 
@@ -61,6 +76,7 @@ class SessionRun:
     cache: Cache
     records: dict[str, StageRecord] = field(default_factory=dict)
     _tables: dict[str, pa.Table] = field(default_factory=dict)
+    source: _Source | None = None
 
     def table(self, ref: Ref) -> pa.Table | None:
         """An output of a stage that ran or was cached; None if the stage was skipped."""
@@ -76,6 +92,14 @@ class SessionRun:
     def skipped(self) -> dict[str, str]:
         return {k: r.reason for k, r in self.records.items() if r.status == "skipped"}
 
+    @property
+    def raw_units(self) -> dict[str, str]:
+        """Stream -> unit of its raw values where a reader left them unconverted ("counts")."""
+        return self.source.raw_units() if self.source is not None else {}
+
+
+RAW_UNIT_KEY = b"imupipe.raw_unit"  # table metadata: the values are in this unit, not SI
+
 
 class _Source:
     """The session's raw streams, read only when first needed."""
@@ -84,27 +108,42 @@ class _Source:
         self, path: Path, pipeline: Pipeline, registry: Registry, digest: str, previous: dict | None
     ):
         self.path, self.pipeline, self.registry, self.digest = path, pipeline, registry, digest
+        self.reader = reader_identity(registry, path, pipeline.reader)
         self._streams: dict[str, pa.Table] | None = None
         self._names: list[str] | None = None
+        self._units: dict[str, str] | None = None
         if (
             previous
             and previous.get("session_digest") == digest
             and previous.get("device") == pipeline.device
+            and previous.get("reader") == self.reader
             and "streams" in previous
         ):
-            self._names = list(previous["streams"])  # known from the last run of the same bytes
+            # known from the last run of the same bytes through the same reader
+            self._names = list(previous["streams"])
+            self._units = previous.get("raw_units")
 
     def _read(self) -> dict[str, pa.Table]:
         if self._streams is None:
             recording = read_recording(self.path, self.registry, self.pipeline.reader)
             self._streams = dict(recording.device(self.pipeline.device))
             self._names = sorted(self._streams)
+            self._units = {
+                name: unit.decode()
+                for name, table in sorted(self._streams.items())
+                if (unit := (table.schema.metadata or {}).get(RAW_UNIT_KEY))
+            }
         return self._streams
 
     def names(self) -> list[str]:
         if self._names is None:
             self._read()
         return list(self._names or [])
+
+    def raw_units(self) -> dict[str, str]:
+        if self._units is None:
+            self._read()
+        return dict(self._units or {})
 
     def table(self, stream: str) -> pa.Table:
         return self._read()[stream]
@@ -128,10 +167,14 @@ def run_session(
             "(imupipe batch takes folders)"
         )
     digest = session_digest(session)
-    source = _Source(session, pipeline, registry, digest, read_manifest(manifest_path))
     run = SessionRun(session, pipeline, cache)
+    source = None
     error = None
     try:
+        # choosing the reader may fail (no reader claims the file): recorded like any error
+        source = run.source = _Source(
+            session, pipeline, registry, digest, read_manifest(manifest_path)
+        )
         for key, node in pipeline.nodes.items():
             record = _run_node(node, run, source, registry)
             run.records[key] = record
@@ -147,8 +190,10 @@ def run_session(
                 "session": str(session.resolve()),
                 "session_digest": digest,
                 "device": pipeline.device,
-                "streams": source._names,
-                "pipeline": {"name": pipeline.name, "path": str(pipeline.path)},
+                "reader": source.reader if source else None,
+                "streams": source._names if source else None,
+                "raw_units": source._units if source else None,
+                "pipeline": {"name": pipeline.name, "path": str(Path(pipeline.path).resolve())},
                 "imupipe_version": __version__,
                 "error": error,
                 "stages": {k: r.to_dict() for k, r in run.records.items()},
@@ -168,10 +213,13 @@ def _run_node(node: Node, run: SessionRun, source: _Source, registry: Registry) 
             return StageRecord("skipped", reason=why)
     parts = key_parts(node, digests)
     key = parts.key
-    cached = run.cache.digests(key)
+    cached = run.cache.entry(key)
     if cached is not None:
+        _log_warnings(node.key, cached["warnings"])  # said again: the result still has them
         registry.pm.hook.imupipe_after_stage(stage=node.key, key=key, cached=True, seconds=0.0)
-        return StageRecord("cached", key, parts.to_dict(), cached)
+        return StageRecord(
+            "cached", key, parts.to_dict(), cached["outputs"], warnings=cached["warnings"]
+        )
 
     registry.pm.hook.imupipe_before_stage(stage=node.key, key=key)
     where = f"{source.path}: stage {node.key!r} ({node.stage.name})"
@@ -182,15 +230,25 @@ def _run_node(node: Node, run: SessionRun, source: _Source, registry: Registry) 
         schemas.check(table, node.stage.inputs[port], f"{where} input {port!r}")
         inputs[port] = table
     t0 = time.perf_counter()
-    try:
-        outputs = node.stage.func(MappingProxyType(inputs), node.params, node.solver)
-    except ImupipeError as exc:
-        raise _prefixed(exc, where) from exc
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            outputs = node.stage.func(MappingProxyType(inputs), node.params, node.solver)
+        except ImupipeError as exc:
+            raise _prefixed(exc, where) from exc
+        finally:
+            said = list(dict.fromkeys(str(w.message) for w in caught))
+            _log_warnings(node.key, said)
     seconds = time.perf_counter() - t0
     _check_outputs(node, outputs, where)
-    stored = run.cache.store(parts, {p: outputs[p] for p in node.stage.outputs}, node.key)
+    stored = run.cache.store(parts, {p: outputs[p] for p in node.stage.outputs}, node.key, said)
     registry.pm.hook.imupipe_after_stage(stage=node.key, key=key, cached=False, seconds=seconds)
-    return StageRecord("ran", key, parts.to_dict(), stored, seconds=seconds)
+    return StageRecord("ran", key, parts.to_dict(), stored, seconds=seconds, warnings=said)
+
+
+def _log_warnings(stage: str, messages: list[str]) -> None:
+    for message in messages:
+        log.warning("%s: %s", stage, message)
 
 
 def _input_digest(ref: Ref, run: SessionRun, source: _Source) -> tuple[str | None, str]:
@@ -198,7 +256,7 @@ def _input_digest(ref: Ref, run: SessionRun, source: _Source) -> tuple[str | Non
     if ref.is_session:
         if ref.port not in source.names():
             return None, f"the session has no {ref.port!r} stream"
-        return stream_digest(source.digest, run.pipeline.device, ref.port), ""
+        return stream_digest(source.digest, run.pipeline.device, ref.port, source.reader), ""
     rec = run.records[ref.source]
     if rec.status not in ("ran", "cached"):
         return None, f"upstream stage {ref.source!r} was skipped ({rec.reason})"

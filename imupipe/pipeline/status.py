@@ -1,10 +1,11 @@
 """``imupipe status``: which stages would rerun and why, decided before anything runs.
 
-Compares the key parts each stage would have now (stage version, validated
-params, solver, input digests) with those recorded in the session's run
-manifest. Session inputs are digested from the files; an upstream input's
-digest is known only when the upstream stage is fresh (else it may or may not
-change: early cutoff decides when it runs).
+Compares the key parts each stage would have now (stage version and plugin
+distribution, validated params, solver, input digests) with those recorded in
+the session's run manifest. Session inputs are digested from the files and the
+reader that would read them; an upstream input's digest is known only when the
+upstream stage is fresh (else it may or may not change: early cutoff decides
+when it runs).
 """
 
 from __future__ import annotations
@@ -24,17 +25,29 @@ class StageState:
 
 
 def stage_states(
-    pipeline: Pipeline, session: Path, manifest: dict | None, cache: Cache
+    pipeline: Pipeline,
+    session: Path,
+    manifest: dict | None,
+    cache: Cache,
+    reader: dict | str | None = None,
 ) -> list[StageState]:
-    """The state of every stage of ``pipeline`` on ``session`` given its last run manifest."""
+    """The state of every stage of ``pipeline`` on ``session`` given its last run manifest.
+
+    ``reader``: ``reader_identity`` of the reader that would read the session now,
+    or why none would (a string).
+    """
     manifest = manifest or {}
     records = manifest.get("stages", {})
     digest = session_digest(session) if Path(session).is_file() else None
+    if isinstance(reader, str):
+        return [StageState(k, "stale", (reader,)) for k in pipeline.nodes]
     same_session = (
         digest is not None
         and digest == manifest.get("session_digest")
         and manifest.get("device") == pipeline.device
+        and manifest.get("reader") == reader
     )
+    session_change = _session_change(digest, reader, manifest)
     streams = manifest.get("streams") if same_session else None
     fresh_outputs: dict[str, dict] = {}
     skipped: set[str] = set()
@@ -63,7 +76,7 @@ def stage_states(
         for port, ref in node.inputs.items():
             if ref.is_session:
                 if streams is None or ref.port in streams:  # else an absent optional stream
-                    inputs[port] = stream_digest(digest, pipeline.device, ref.port)
+                    inputs[port] = stream_digest(digest, pipeline.device, ref.port, reader)
             elif ref.source in fresh_outputs:
                 inputs[port] = fresh_outputs[ref.source].get(ref.port, "")
             elif ref.source not in skipped:
@@ -71,7 +84,7 @@ def stage_states(
                 if ref.source not in stale_up:
                     stale_up.append(ref.source)
         new = key_parts(node, inputs)
-        reasons = _differences(old, new, node.inputs, set(inputs) | unknown)
+        reasons = _differences(old, new, node.inputs, set(inputs) | unknown, session_change)
         if stale_up:
             names = ", ".join(repr(s) for s in stale_up)
             reasons.append(
@@ -99,13 +112,68 @@ def _skip_reason(node, streams: list[str] | None, skipped: set[str]) -> str:
     return ""
 
 
-def _differences(old: KeyParts, new: KeyParts, wiring, wired: set[str]) -> list[str]:
+def _session_change(digest: str | None, reader: dict | None, manifest: dict) -> str:
+    """Why the session inputs' digests changed: the bytes, or else the reader."""
+    if digest != manifest.get("session_digest"):
+        return "the session file changed"
+    old = manifest.get("reader")
+    if old != reader and isinstance(old, dict) and isinstance(reader, dict):
+        return "; ".join(_reader_changes(old, reader)) or "the reader changed"
+    if old != reader:
+        return "the reader changed"
+    return "the device changed"
+
+
+def _reader_changes(old: dict, new: dict) -> list[str]:
+    """``reader csv changed 0.1 -> 0.2``, also for the readers a manifest delegates to."""
+    if old.get("name") != new.get("name"):
+        return [f"reader changed {old.get('name')} -> {new.get('name')}"]
+    out = []
+    before, after = (
+        {"name": d.get("distribution"), "version": d.get("version")} for d in (old, new)
+    )
+    if before != after:
+        out.append(f"reader {new['name']} changed {_versions(before, after)}")
+    before, after = (
+        {d["name"]: f"{d.get('distribution')} {d.get('version')}" for d in r.get("delegates", [])}
+        for r in (old, new)
+    )
+    return out + _dict_changes("manifest reader", before, after)
+
+
+def _versions(old: dict | None, new: dict | None) -> str:
+    """``1.0 -> 1.1`` within one distribution, else ``a 1.0 -> b 2.0`` (``built in``: none)."""
+    if old and new and old.get("name") == new.get("name"):
+        return f"{old.get('version')} -> {new.get('version')}"
+    a, b = (f"{d['name']} {d.get('version')}" if d and d.get("name") else "no distribution"
+            for d in (old, new))
+    return f"{a} -> {b}"
+
+
+def _dist_change(prefix: str, old: dict | None, new: dict | None) -> list[str]:
+    """``plugin imupipe-x dist version changed 1.0 -> 1.1`` (``prefix``: whose plugin)."""
+    if (old or None) == (new or None):
+        return []
+    if old and new and old.get("name") == new.get("name"):
+        return [f"{prefix}plugin {new['name']} dist version changed {_versions(old, new)}"]
+    return [f"{prefix}plugin dist changed {_versions(old, new)}"]
+
+
+def _differences(
+    old: KeyParts, new: KeyParts, wiring, wired: set[str], session_change: str
+) -> list[str]:
     out = []
     if old.stage != new.stage:
         out.append(f"stage changed {old.stage} -> {new.stage}")
-    elif old.version != new.version:
-        out.append(f"version changed {old.version} -> {new.version}")
-    out += _dict_changes("param", old.params, new.params)
+    else:
+        if old.version != new.version:
+            out.append(f"version changed {old.version} -> {new.version}")
+        out += _dist_change("", old.distribution, new.distribution)
+    params_old, params_new = dict(old.params), dict(new.params)
+    if old.solver or new.solver:  # the solver's name is reported below, once
+        params_old.pop("solver", None)
+        params_new.pop("solver", None)
+    out += _dict_changes("param", params_old, params_new)
     if (old.solver or {}).get("name") != (new.solver or {}).get("name"):
         out.append(
             f"solver changed {(old.solver or {}).get('name')} -> {(new.solver or {}).get('name')}"
@@ -116,6 +184,11 @@ def _differences(old: KeyParts, new: KeyParts, wiring, wired: set[str]) -> list[
                 f"solver {new.solver['name']} version changed {old.solver['version']} -> "
                 f"{new.solver['version']}"
             )
+        out += _dist_change(
+            f"solver {new.solver['name']} ",
+            old.solver.get("distribution"),
+            new.solver.get("distribution"),
+        )
         out += _dict_changes("solver param", old.solver["params"], new.solver["params"])
     for port in sorted(set(old.inputs) | wired):
         if port not in old.inputs:
@@ -124,7 +197,7 @@ def _differences(old: KeyParts, new: KeyParts, wiring, wired: set[str]) -> list[
             out.append(f"input {port!r} no longer wired")
         elif port in new.inputs and new.inputs[port] != old.inputs[port]:
             ref = wiring[port]
-            what = "the session file changed" if ref.is_session else f"{ref} changed"
+            what = session_change if ref.is_session else f"{ref} changed"
             out.append(f"input {port!r} changed ({what})")
     return out
 
@@ -141,11 +214,16 @@ def _dict_changes(label: str, old: dict, new: dict) -> list[str]:
     return out
 
 
-def render(session: Path, pipeline: Pipeline, states: list[StageState], run_dir: Path) -> str:
-    """Text for one session: a header, then one line per stage."""
+def render(
+    session: Path, pipeline: Pipeline, states: list[StageState], run_dir: Path, note: str = ""
+) -> str:
+    """Text for one session: a header, then one line per stage.
+
+    ``note`` says where the pipeline came from when it was not given.
+    """
     stale = sum(s.state == "stale" for s in states)
     head = (
-        f"{session}  (pipeline {pipeline.name!r}, results in {run_dir}): "
+        f"{session}  (pipeline {pipeline.name!r}{note}, results in {run_dir}): "
         f"{stale} stale, {sum(s.state == 'fresh' for s in states)} fresh"
     )
     width = max((len(s.stage) for s in states), default=0)

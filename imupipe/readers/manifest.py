@@ -42,6 +42,8 @@ UNITS: dict[str, dict[str, tuple[float, float]]] = {
 }
 CANONICAL_UNIT = {"accel": "m/s^2", "gyro": "rad/s", "mag": "T", "temperature": "degC"}
 TIME_UNITS = {"s": 1e9, "ms": 1e6, "us": 1e3, "ns": 1.0}
+RAW_UNIT_KEY = "imupipe.raw_unit"  # table metadata: values in this unit, not the SI one
+INT64_NS = 2.0**63  # |t_ns| must stay below this
 FORMATS_BY_SUFFIX = {".csv": "csv", ".txt": "csv", ".tsv": "csv", ".dat": "csv",
                      ".mat": "matlab", ".h5": "matlab", ".hdf5": "matlab"}
 
@@ -194,8 +196,10 @@ def read_stream(spec: StreamSpec, manifest_path: Path, index: int) -> pa.Table:
     offset = np.broadcast_to(np.asarray(spec.offset, float), (len(values),))
     scale = spec.scale_factors()
     si = [(v - offset[k]) * scale[k] * factor + addend for k, v in enumerate(values)]
-    return canonical_table(spec.stream, t_ns, si, {"imupipe.source": str(path),
-                                                   "imupipe.source_unit": unit})
+    extra = {"imupipe.source": str(path), "imupipe.source_unit": unit}
+    if unit == "counts":  # left unconverted: calibration.json says so (raw_units)
+        extra[RAW_UNIT_KEY] = unit
+    return canonical_table(spec.stream, t_ns, si, extra)
 
 
 def _parse(spec: StreamSpec, path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -217,15 +221,36 @@ def _parse(spec: StreamSpec, path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
     n = len(next(iter(data.values())))
     if "t" in data:
         t = data["t"]
-        if spec.time_unit == "samples":
-            t_ns = np.round(t * (1e9 / spec.rate_hz)).astype(np.int64)
-        elif spec.time_unit == "ns":
+        if spec.time_unit == "ns" and t.dtype.kind in "iu":
             t_ns = t.astype(np.int64)
         else:
-            t_ns = np.round(t * TIME_UNITS[spec.time_unit]).astype(np.int64)
+            per = 1e9 / spec.rate_hz if spec.time_unit == "samples" \
+                else TIME_UNITS[spec.time_unit]
+            t_ns = _to_ns(t, per, spec, refs["t"], path)
     else:
         t_ns = np.round(np.arange(n) * (1e9 / spec.rate_hz)).astype(np.int64)
     return t_ns, [data[a] for a in spec.axes()]
+
+
+def _to_ns(t: np.ndarray, per: float, spec: StreamSpec, ref: ColumnRef, path: Path
+           ) -> np.ndarray:
+    """(n,) int64 ns from a float time column ``t`` in units of ``per`` ns, checked."""
+    t = np.asarray(t, dtype=np.float64)
+    bad = ~np.isfinite(t)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ReaderError(f"{path}: time column {ref!r} has non-finite value {t[i]} at row {i}; "
+                          "fix the file or give rate_hz instead of a time column")
+    with np.errstate(over="ignore", invalid="ignore"):
+        ns = np.round(t * per)
+    big = ~(np.abs(ns) < INT64_NS)
+    if big.any():
+        i = int(np.argmax(big))
+        hint = " is the column in ns?" if spec.time_unit != "ns" else ""
+        raise ReaderError(f"{path}: time column {ref!r} with time_unit {spec.time_unit!r} "
+                          f"overflows int64 nanoseconds ({t[i]:g} at row {i});{hint} "
+                          "set time_unit to the column's unit")
+    return ns.astype(np.int64)
 
 
 def _pick_columns(path: Path, buffer: np.ndarray, refs: dict[str, ColumnRef]
@@ -340,6 +365,10 @@ class ManifestReader:
 
     def read(self, path: Path) -> Recording:
         return read_manifest(Path(path))
+
+    def delegates(self, path: Path) -> list[str]:
+        """The registered readers the manifest hands files to (they shape its tables too)."""
+        return sorted({s.reader for s in load_manifest(Path(path)).streams if s.reader})
 
 
 COMPONENTS = [ManifestReader()]

@@ -269,3 +269,37 @@ solver_params = { scale = 1.0 }
 [export]
 calibration = ["accel.calibration", "gyro.calibration", "mag.calibration"]
 """
+
+
+def status_lines(text: str) -> dict[str, str]:
+    """stage -> 'state  reasons' from the ``imupipe status`` text of one session."""
+    out = {}
+    for line in text.splitlines()[1:]:
+        state, stage, *rest = line.split(None, 2)
+        out[stage] = f"{state} {' '.join(rest)}".strip()
+    return out
+
+
+def write_csv(path: Path, values, rate_hz: float = 100.0, header: str = "t,x,y,z") -> Path:
+    """A CSV of time at ``rate_hz`` and the (n, 3) ``values``: ``header`` names the columns.
+
+    Time is in s, or int ns when the first column is ``t_ns`` (the canonical layout).
+    """
+    ns = header.startswith("t_ns")
+    rows = "\n".join(
+        f"{round(i * 1e9 / rate_hz) if ns else f'{i / rate_hz:.6g}'},{x:.6f},{y:.6f},{z:.6f}"
+        for i, (x, y, z) in enumerate(values)
+    )
+    Path(path).write_text(f"{header}\n{rows}\n")
+    return Path(path)
+
+
+def write_manifest(path: Path, name: str, *streams: dict) -> Path:
+    """A ``session.toml`` naming ``streams`` (each a dict of stream keys: stream, file, ...)."""
+    import json
+
+    lines = ["[session]", f"name = {json.dumps(name)}"]
+    for stream in streams:
+        lines += ["[[streams]]", *(f"{k} = {json.dumps(v)}" for k, v in stream.items())]
+    Path(path).write_text("\n".join(lines) + "\n")
+    return Path(path)

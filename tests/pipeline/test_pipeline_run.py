@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
-from pipeline_toys import TOY_PIPELINE, write_session
+from pipeline_toys import TOY_PIPELINE, write_csv, write_manifest, write_session
 
 from imupipe import __version__, cli
+from imupipe.components import Stage
 from imupipe.errors import ImupipeError, ReaderError, SchemaError
 from imupipe.hookspecs import hookimpl
 from imupipe.io import read_arrow
@@ -86,16 +88,35 @@ def test_skipped_upstream_skips_downstream(tmp_path, toy_registry):
     assert "upstream stage 'scaled' was skipped" in manifest["stages"]["scaled2"]["reason"]
 
 
+class FigureReport:
+    """A report exporter as the built-in one writes: report.md and figures/."""
+
+    name = "report"
+
+    def export(self, results, context, out_dir):
+        (Path(out_dir) / "figures").mkdir(parents=True, exist_ok=True)
+        (Path(out_dir) / "figures" / "fit.png").write_bytes(b"png")
+        (Path(out_dir) / "report.md").write_text("# report\n")
+        return [Path(out_dir) / "report.md"]
+
+    @hookimpl
+    def imupipe_register_exporters(self, register):
+        register(self)
+
+
 def test_failing_session_leaves_no_calibration_and_others_still_run(
     tmp_path, toy_registry, toy_pipeline, session
 ):
-    registry, _ = toy_registry()
+    registry, _ = toy_registry(FigureReport())
+    toy_pipeline.write_text(TOY_PIPELINE + 'reports = ["gyro.calibration"]\n')
     out = tmp_path / "out"
     bad = tmp_path / "data" / "bad.arrowsession"
     bad.write_bytes(b"not arrow at all")
-    (out / "bad").mkdir(parents=True)
+    (out / "bad" / "figures").mkdir(parents=True)
     (out / "bad" / "calibration.json").write_text("{}")  # stale results of an earlier run
     (out / "bad" / "report.md").write_text("# old report")
+    (out / "bad" / "figures" / "old.png").write_bytes(b"png")
+    (out / "bad" / "notes.txt").write_text("the user's own file")
     with pytest.raises(
         ReaderError,
         match=r"bad.arrowsession: not an Arrow IPC session .*\(1 of 2 sessions failed\)",
@@ -103,7 +124,11 @@ def test_failing_session_leaves_no_calibration_and_others_still_run(
         run_sessions([bad, session], toy_pipeline, out, quiet=True, registry=registry)
     assert not (out / "bad" / "calibration.json").exists()
     assert not (out / "bad" / "report.md").exists()
+    assert not (out / "bad" / "figures").exists()
+    assert (out / "bad" / "notes.txt").is_file()  # only what the exporters write goes
+    assert (out / "bad" / "run.json").is_file()
     assert (out / "s1" / "calibration.json").is_file()
+    assert (out / "s1" / "figures" / "fit.png").is_file()
     assert not list(out.rglob("*.part"))
 
 
@@ -231,8 +256,14 @@ def test_recording_is_not_read_when_everything_is_cached(
 def test_run_with_no_exportable_calibration_fails(tmp_path, toy_registry):
     registry, _ = toy_registry()
     pipeline = tmp_path / "p.toml"
-    pipeline.write_text(TOY_PIPELINE)
-    session = write_session(tmp_path / "tonly.arrowsession", streams=("temperature",))
+    # only the mag stage is exported; a session without mag skips it (a recording without
+    # any IMU stream is rejected by the reader check already)
+    pipeline.write_text(
+        TOY_PIPELINE.replace(
+            '["accel.calibration", "gyro.calibration", "mag.calibration"]', '["mag.calibration"]'
+        )
+    )
+    session = write_session(tmp_path / "tonly.arrowsession", streams=("gyro", "temperature"))
     with pytest.raises(ImupipeError, match="no calibration table to export"):
         run_sessions([session], pipeline, tmp_path / "out", quiet=True, registry=registry)
     assert not (tmp_path / "out" / "tonly" / "calibration.json").exists()
@@ -260,3 +291,66 @@ def test_report_needing_a_missing_extra_warns_and_keeps_the_calibration(
     with pytest.warns(UserWarning, match=r"no report written: .*imupipe\[report\]"):
         run_sessions([session], pipeline, tmp_path / "out", quiet=True, registry=registry)
     assert (tmp_path / "out" / "s1" / "calibration.json").is_file()
+
+
+class WarningStage:
+    """A stage that warns about its data, as the thermal stage does when it gives up on k."""
+
+    @staticmethod
+    def _func(inputs, params, solver):
+        warnings.warn("too little temperature range; continuing with k = 0", stacklevel=2)
+        warnings.warn("too little temperature range; continuing with k = 0", stacklevel=2)
+        return {"samples": inputs["samples"]}
+
+    @hookimpl
+    def imupipe_register_stages(self, register):
+        register(Stage("toy_warn", "1", self._func, inputs={"samples": "accel"},
+                       outputs={"samples": "accel"}))
+
+
+def test_stage_warnings_are_logged_recorded_and_replayed_from_the_cache(
+    tmp_path, toy_registry, session, caplog
+):
+    pipeline = tmp_path / "p.toml"
+    pipeline.write_text(TOY_PIPELINE.replace('inputs = { samples = "session.accel" }',
+                                             'inputs = { samples = "warned.samples" }')
+                        + '\n[stages.warned]\nuses = "toy_warn"\n'
+                          'inputs = { samples = "session.accel" }\n')
+    message = "warned: too little temperature range; continuing with k = 0"
+    for status in ("ran", "cached"):
+        registry, _ = toy_registry(WarningStage())
+        caplog.clear()
+        with warnings.catch_warnings(), caplog.at_level("WARNING", logger="imupipe.pipeline"):
+            warnings.simplefilter("error")  # nothing escapes as a Python warning
+            run_sessions([session], pipeline, tmp_path / "out", quiet=True, registry=registry)
+        assert [r.getMessage() for r in caplog.records] == [message]  # once, on the cache hit too
+        record = json.loads((tmp_path / "out" / "s1" / "run.json").read_text())["stages"]["warned"]
+        assert record["status"] == status
+        assert record["warnings"] == [message.removeprefix("warned: ")]
+
+
+def test_counts_session_says_the_raw_units_in_calibration_json(tmp_path, toy_registry):
+    import imupipe.readers
+
+    rng = np.random.default_rng(3)
+    write_csv(tmp_path / "acc.csv", 32768 + 100 * rng.standard_normal((200, 3)))
+    write_csv(tmp_path / "gyro.csv", np.full((200, 3), 0.001))
+    manifest = write_manifest(
+        tmp_path / "session.toml",
+        "counts",
+        {"stream": "accel", "file": "acc.csv", "unit": "counts"},
+        {"stream": "gyro", "file": "gyro.csv", "unit": "rad/s"},
+    )
+    pipeline = tmp_path / "p.toml"
+    pipeline.write_text(TOY_PIPELINE.replace('gravity = "z"', 'gravity = "none"'))
+    for _ in range(2):  # the second run reads nothing: the units come from run.json
+        registry, counter = toy_registry(imupipe.readers)
+        run_sessions([manifest], pipeline, tmp_path / "out", quiet=True, registry=registry)
+        doc = json.loads((tmp_path / "out" / tmp_path.name / "calibration.json").read_text())
+        assert doc["accel"]["units"] == "m/s^2" and doc["accel"]["raw_units"] == "counts"
+        assert doc["accel"]["raw_units_note"] == (
+            "b0 in counts, k in counts/degC; M maps counts to m/s^2"
+        )
+        assert doc["accel"]["b0"][0] > 30000  # the toy bias is the mean: in counts
+        assert doc["gyro"]["raw_units"] == "rad/s" and "raw_units_note" not in doc["gyro"]
+    assert counter.ran == []

@@ -2,20 +2,14 @@
 
 from __future__ import annotations
 
-from pipeline_toys import TOY_PIPELINE, write_session
+from pipeline_toys import TOY_PIPELINE, MeanParams, status_lines, write_session
 
 from imupipe import cli
+from imupipe.hookspecs import hookimpl
 from imupipe.pipeline import api
 from imupipe.pipeline.api import run_sessions, status
 
-
-def _lines(text: str) -> dict[str, str]:
-    """stage -> 'state  reasons' from the status text of one session."""
-    out = {}
-    for line in text.splitlines()[1:]:
-        state, stage, *rest = line.split(None, 2)
-        out[stage] = f"{state} {' '.join(rest)}".strip()
-    return out
+_lines = status_lines
 
 
 def test_status_before_and_after_a_run(tmp_path, toy_registry, toy_pipeline, session):
@@ -80,3 +74,40 @@ def test_cli_status(tmp_path, toy_registry, toy_pipeline, session, monkeypatch, 
         cli.main(["status", str(session), "--pipeline", str(toy_pipeline), "--out", str(out)]) == 0
     )
     assert "stale   scaled" in capsys.readouterr().out
+
+
+def test_status_without_pipeline_uses_the_one_recorded_in_run_json(
+    tmp_path, toy_registry, toy_pipeline, session
+):
+    registry, _ = toy_registry()
+    out = tmp_path / "out"
+    run_sessions([session], toy_pipeline, out, quiet=True, registry=registry)
+    text = status([session], None, out, registry=registry)  # the default pipeline is not toy
+    assert f"from run.json: {toy_pipeline.resolve()}" in text.splitlines()[0]
+    assert set(_lines(text).values()) == {"fresh"}
+    assert set(_lines(status([], None, out, registry=registry)).values()) == {"fresh"}
+
+
+class OtherToySolver:
+    name = "toy_mean_other"
+    kind = "toy"
+    version = "1"
+    params = MeanParams
+
+    def solve(self, observations, params):
+        return observations.mean(axis=0)
+
+    @hookimpl
+    def imupipe_register_solvers(self, register):
+        register(self)
+
+
+def test_a_solver_change_is_said_once(tmp_path, toy_registry, toy_pipeline, session):
+    out = tmp_path / "out"
+    run_sessions([session], toy_pipeline, out, quiet=True, registry=toy_registry()[0])
+    toy_pipeline.write_text(
+        TOY_PIPELINE.replace("solver_params = { scale = 1.0 }", 'solver = "toy_mean_other"')
+    )
+    registry, _ = toy_registry(OtherToySolver())
+    lines = _lines(status([session], toy_pipeline, out, registry=registry))
+    assert lines["mag"] == "stale solver changed toy_mean -> toy_mean_other"

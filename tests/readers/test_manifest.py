@@ -87,6 +87,7 @@ def test_imu_tk_xsens_keeps_raw_counts(shared_data, registry):
     assert acc.column("t_ns")[0].as_py() == 29_840_000
     assert [acc.column(a)[0].as_py() for a in "xyz"] == [33108.0, 33329.0, 36429.0]
     assert acc.schema.metadata[b"imupipe.source_unit"] == b"counts"
+    assert acc.schema.metadata[b"imupipe.raw_unit"] == b"counts"  # calibration.json raw_units
 
 
 def test_sunsided_full_sphere_units(shared_data, registry):
@@ -141,6 +142,37 @@ unit = "K"
     assert acc.column("z").to_pylist() == pytest.approx([400e-3 * G0, 402e-3 * G0])
     assert rec.device()["temperature"].column("temperature").to_pylist() == pytest.approx(
         [25.0, 26.0])
+
+
+def test_si_streams_carry_no_raw_unit(tmp_path, registry):
+    write(tmp_path / "acc.csv", "t,x,y,z\n0,1,2,3\n0.01,1,2,3\n")
+    manifest = write(tmp_path / "session.toml", '[session]\nname = "g"\n'
+                     '[[streams]]\nstream = "accel"\nfile = "acc.csv"\nunit = "g"\n')
+    meta = read_recording(manifest, registry).device()["accel"].schema.metadata
+    assert b"imupipe.raw_unit" not in meta  # converted to m/s^2: no raw unit to state
+
+
+@pytest.mark.parametrize("unit, t0, t1", [("s", "1700000000123456789", "1700000000133456789"),
+                                          ("ms", "1e300", "2e300")])
+def test_time_column_overflowing_int64_ns_names_the_fix(tmp_path, registry, unit, t0, t1):
+    write(tmp_path / "acc.csv", f"time,x,y,z\n{t0},1,2,3\n{t1},1,2,3\n")
+    manifest = write(tmp_path / "session.toml", '[session]\nname = "ns"\n[[streams]]\n'
+                     'stream = "accel"\nfile = "acc.csv"\n'
+                     'columns = { t = "time", x = "x", y = "y", z = "z" }\n'
+                     f'time_unit = "{unit}"\n')
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no numpy RuntimeWarning on the way
+        with pytest.raises(ReaderError, match=(
+            rf"acc.csv: time column 'time' with time_unit '{unit}' overflows int64 nanoseconds "
+            r".*is the column in ns\? set time_unit")):
+            read_recording(manifest, registry)
+
+
+def test_delegates_names_the_readers_a_manifest_uses(tmp_path):
+    manifest = write(tmp_path / "session.toml", '[session]\nname = "d"\n'
+                     '[[streams]]\nstream = "accel"\nfile = "a.csv"\nreader = "csv"\n'
+                     '[[streams]]\nstream = "gyro"\nfile = "g.csv"\n')
+    assert ManifestReader().delegates(manifest) == ["csv"]
 
 
 def test_lsb_per_unit_and_samples_time_and_devices(tmp_path, registry):
