@@ -69,6 +69,13 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+class _LineFormatter(logging.Formatter):
+    """``imupipe: warning: <message>``: one line per record, like the error lines."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return f"imupipe: {record.levelname.lower()}: {record.getMessage()}"
+
+
 def _parse_assignments(option: str, items: list[str], example: str) -> dict[str, object]:
     """``NAME=JSON`` pairs of a repeated option, e.g. ``--effect lever_arm={"r_m": [0.05, 0, 0]}``."""
     parsed = {}
@@ -158,7 +165,9 @@ COMMANDS = {"ingest": _cmd_ingest, "run": _cmd_run, "batch": _cmd_batch, "status
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="imupipe: %(levelname)s: %(message)s")
+    handler = logging.StreamHandler()
+    handler.setFormatter(_LineFormatter())
+    logging.basicConfig(level=logging.WARNING, handlers=[handler])
     try:
         return COMMANDS[args.command](args)
     except ImupipeError as exc:

@@ -118,17 +118,13 @@ def process_session(
         raise
 
 
-# what the report exporter writes when it does not say (its optional ``writes`` attribute)
-REPORT_WRITES = ("report.md", "figures")
-
-
 def _export_names(pipeline: Pipeline, registry: Registry) -> list[str]:
     """Names under the session's folder that the pipeline's exporters write."""
     names = []
     if pipeline.export_calibration:
         names.append(CALIBRATION)
     if pipeline.export_reports and "report" in registry.names("exporters"):
-        names += getattr(registry.get("exporters", "report"), "writes", REPORT_WRITES)
+        names += getattr(registry.get("exporters", "report"), "writes", ())
     return names
 
 

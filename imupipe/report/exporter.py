@@ -105,6 +105,7 @@ class ReportExporter:
     """Writes ``out_dir/report.md`` and ``out_dir/figures/*.png``."""
 
     name = "report"
+    writes = ("report.md", "figures")
 
     def export(self, results: Mapping[str, pa.Table], context: Mapping[str, Any], out_dir: Path) -> list[Path]:
         mpl = require("matplotlib", "report")
