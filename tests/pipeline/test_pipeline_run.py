@@ -92,6 +92,7 @@ class FigureReport:
     """A report exporter as the built-in one writes: report.md and figures/."""
 
     name = "report"
+    writes = ("report.md", "figures")
 
     def export(self, results, context, out_dir):
         (Path(out_dir) / "figures").mkdir(parents=True, exist_ok=True)
