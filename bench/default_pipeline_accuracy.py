@@ -1,11 +1,15 @@
 """Accuracy of the default pipeline on simulated standard sessions, against the targets.
 
     /work/venv/bin/python bench/default_pipeline_accuracy.py [--seeds 5]
-        [--pipelines default sphere-rig] [--out DIR]
+        [--pipelines default sphere-rig] [--bias-rw ACCEL GYRO] [--out DIR]
 
 Simulates ``--seeds`` sessions of the ``standard`` protocol (seeds 0, 1, ...) at
 standard gravity (9.80665 m/s^2, what the shipped pipelines assume) with the
-default consumer-MEMS model and no omitted-physics effects, writes each as
+default consumer-MEMS model (white noise, quantisation, turn-on bias, thermal
+drift over the warm-up) plus a bias random walk (``--bias-rw``, default
+1e-5 m/s^2/sqrt(s) and 1e-6 rad/s/sqrt(s): about 0.04 mg and 0.2 deg/h over a
+minute, a consumer part's in-run drift; ``0 0`` for none) and no omitted-physics
+effects, writes each as
 ``.mcap`` with its truth, runs each pipeline through ``imupipe.pipeline.api.run_sessions``
 (``default``: the built-in pipeline, method A + joint refinement; another name:
 ``pipelines/<name>.toml``, e.g. ``sphere-rig``, method A alone; or a path) and
@@ -30,6 +34,7 @@ from imupipe.models import Calibration
 from imupipe.pipeline.api import run_sessions, session_ids
 from imupipe.sim.api import simulate
 from imupipe.sim.compare import CalibrationErrors, calibration_errors
+from imupipe.sim.sensor import ImuModel, default_imu
 from imupipe.sim.truth import load_truth
 
 REPO = Path(__file__).resolve().parents[1]
@@ -53,9 +58,19 @@ def pipeline_path(name: str) -> Path | None:
     return Path(name) if name.endswith(".toml") else REPO / "pipelines" / f"{name}.toml"
 
 
-def simulate_sessions(seeds: int, folder: Path) -> list[Path]:
+def drifting_imu(seed: int, accel_rw: float, gyro_rw: float) -> ImuModel:
+    """The simulator's default IMU for ``seed`` (its own draw), with a bias random walk."""
+    imu = default_imu(np.random.default_rng([seed, 2]))  # the draw simulate() makes for seed
+    return imu.model_copy(update={
+        "accel": imu.accel.model_copy(update={"bias_rw": accel_rw}),
+        "gyro": imu.gyro.model_copy(update={"bias_rw": gyro_rw}),
+    })
+
+
+def simulate_sessions(seeds: int, folder: Path, bias_rw: tuple[float, float]) -> list[Path]:
     return [simulate("standard", {}, seed, folder / f"standard-{seed}.mcap", quiet=True,
-                     env={"gravity_m_s2": G})[0] for seed in range(seeds)]
+                     imu=drifting_imu(seed, *bias_rw), env={"gravity_m_s2": G})[0]
+            for seed in range(seeds)]
 
 
 def run_pipeline(name: str, sessions: list[Path], out: Path) -> list[CalibrationErrors | None]:
@@ -95,15 +110,18 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--pipelines", nargs="+", default=["default", "sphere-rig"],
                     help="'default', a name in pipelines/ or a .toml path")
+    ap.add_argument("--bias-rw", type=float, nargs=2, default=[1e-5, 1e-6], metavar=("ACCEL", "GYRO"),
+                    help="bias random walk, m/s^2/sqrt(s) and rad/s/sqrt(s)")
     ap.add_argument("--out", type=Path, default=None, help="keep sessions and results here")
     args = ap.parse_args()
     t_start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="imupipe-bench-") as tmp:
         folder = args.out or Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
-        sessions = simulate_sessions(args.seeds, folder)
+        sessions = simulate_sessions(args.seeds, folder, tuple(args.bias_rw))
         t_sim = time.perf_counter() - t_start
-        print(f"standard protocol, {args.seeds} seeds, g = {G} m/s^2, no effects; "
+        print(f"standard protocol, {args.seeds} seeds, g = {G} m/s^2, bias random walk "
+              f"{args.bias_rw[0]:g} m/s^2/sqrt(s) and {args.bias_rw[1]:g} rad/s/sqrt(s), no effects; "
               f"simulated and written in {t_sim:.1f} s")
         for name in args.pipelines:
             t0 = time.perf_counter()
