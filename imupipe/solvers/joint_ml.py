@@ -15,8 +15,11 @@ plus, when the rests span a range of temperatures, the bias temperature
 coefficients ``k_a``, ``k_g`` (``+ k (T - 25)`` in every line above), so the
 estimate is maximum likelihood for white sensor noise, and its
 covariance is ``(J^T J)^-1`` of the whitened Jacobian at the optimum (the
-Cramer-Rao bound when evaluated at the truth). The earth's rotation is not in
-the model (15 deg/h; it biases ``b_g`` by its projection).
+Cramer-Rao bound when evaluated at the truth). The gyro bias may also walk
+(``bias_walk.py``): its intensity is estimated from the rests, the rests' gyro
+means are then whitened jointly, each turn takes the walk smoothed from the rests
+and carries its uncertainty; with no walk this is the constant-bias model. The
+earth's rotation is not in the model (15 deg/h; it biases ``b_g`` by its projection).
 
 It starts from any answer (method A's or B's). A start in another frame (not
 lower-triangular) is moved to the lower-triangular gauge, refined, and turned
@@ -30,6 +33,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
 import numpy as np
+from pydantic import Field
 from scipy.optimize import least_squares
 
 from ..components import Params
@@ -37,9 +41,16 @@ from ..errors import SolverError
 from ..models import T_REF_C, TriadCalibration
 from ..observations import Rests, TriadFit, Turns
 from ..rotations import carry, pad_turns, rotation_angle, turn_rotations
+from .bias_walk import BiasWalk, estimate_intensity
 from .gyro_integration import drop_saturated, saturated_turns
 from .triad_covariance import shape_basis
-from .turn_model import carried_cov, gyro_sample_cov, integrated_gyro_cov, tangent_basis
+from .turn_model import (
+    carried_cov,
+    gyro_sample_cov,
+    integrated_gyro_cov,
+    tangent_basis,
+    turn_temperature,
+)
 
 N_MAIN = 21  # S_a (6), b_a (3), M_g (9), b_g (3); then k_a, k_g (6) when fitted
 N_OUT = 30  # M_a (9), b_a (3), M_g (9), b_g (3), k_a (3), k_g (3)
@@ -58,6 +69,9 @@ class JointMLParams(Params):
     """Also fit the bias temperature coefficients k of both triads (auto: when the rests span
     2 degC or more); otherwise the start's k are applied unchanged. A start with ``sigma_k``
     (a thermal stage's warm-up fit) enters the fit as a prior measurement of k."""
+    gyro_bias_rw: float | None = Field(None, ge=0)
+    """Gyro bias random walk, rad/s/sqrt(s), per axis; None: estimated from the rests (REML);
+    0: a constant bias ``b0 + k (T - 25)`` (no drift model)."""
 
 
 @dataclass(frozen=True)
@@ -105,14 +119,15 @@ class JointProblem:
     ``x = (S_a lower (6), b_a (3), M_g (9), b_g (3), [k_a (3), k_g (3)], delta (n, 2))``;
     the rest directions are ``u_i = normalise(u0_i + B_i delta_i)``. With ``fit_k`` the
     temperature coefficients are unknowns (identifiable when the rests span a range of
-    temperatures); otherwise ``k_a``/``k_g`` are applied as given. Built once; the turn
-    weights are fixed at the start so the cost is one quadratic form.
+    temperatures); otherwise ``k_a``/``k_g`` are applied as given. ``walk``: the gyro bias
+    random walk (None or inactive: a constant bias). Built once; the turn weights are
+    fixed at the start so the cost is one quadratic form.
     """
 
     def __init__(self, rests: Rests, turns: Turns, gravity: float, S_a: np.ndarray, b_a: np.ndarray,
                  M_g: np.ndarray, b_g: np.ndarray, k_a: np.ndarray | None = None,
                  k_g: np.ndarray | None = None, u0: np.ndarray | None = None, fit_k: bool = False,
-                 sigma_k: np.ndarray | None = None):
+                 sigma_k: np.ndarray | None = None, walk: BiasWalk | None = None):
         self.g = float(gravity)
         n = len(rests)
         self.fit_k = fit_k
@@ -126,13 +141,17 @@ class JointProblem:
         self.W_g = _whitener(rests.cov_of_mean("gyro"))
         self.p, self.q = np.asarray(turns.before), np.asarray(turns.after)
         self.rate, self.dt = pad_turns(turns.t, turns.gyro)
-        self.dT_turn = 0.5 * (self.dT[self.p] + self.dT[self.q])  # the turn's temperature, degC - 25
+        # Bias random walk (bias_walk.py): rests whitened jointly, each turn's bias smoothed.
+        self.walk = walk if walk is not None and walk.active else None
+        self.dT_turn = turn_temperature(rests, turns) - T_REF_C  # degC - 25
         if u0 is None:
             u0 = (self.y_a - np.outer(self.dT, self.k_a) - b_a) @ np.linalg.inv(S_a).T
         self.u0 = u0 / np.linalg.norm(u0, axis=1, keepdims=True)
         self.B = tangent_basis(self.u0)
         # Turn noise: white gyro noise integrated over the turn (docs/method-b.md, turn_model).
         cov_phi = integrated_gyro_cov(gyro_sample_cov(rests), self.dt, M_g)
+        if self.walk is not None:
+            cov_phi = cov_phi + self.walk.rotation_cov(self.dt.sum(axis=1), M_g)
         v = carry(self._rotations(M_g, b_g, self.k_g), self.u0[self.p])
         Eq = self.B[self.q]
         cov2 = np.swapaxes(Eq, -1, -2) @ carried_cov(v, cov_phi) @ Eq
@@ -158,18 +177,26 @@ class JointProblem:
 
     def _rotations(self, M_g: np.ndarray, b_g: np.ndarray, k_g: np.ndarray) -> np.ndarray:
         bias = b_g + np.outer(self.dT_turn, k_g)  # (m, 3)
+        if self.walk is not None:  # the random-walk part smoothed from the rests' residuals
+            bias = bias + self.walk.offsets(self.y_g - b_g - np.outer(self.dT, k_g))
         return turn_rotations((self.rate - bias[:, None, :]) @ M_g.T, self.dt)
 
     def _turn_res(self, R: np.ndarray, u: np.ndarray) -> np.ndarray:
         d = carry(R, u[self.p]) - u[self.q]
         return np.einsum("mab,mib,mi->ma", self.W_t, self.B[self.q], d)
 
+    def _gyro_rest_res(self, b_g: np.ndarray, k_g: np.ndarray) -> np.ndarray:
+        e = self.y_g - b_g - np.outer(self.dT, k_g)
+        if self.walk is not None:  # correlated through the walk: one (3n, 3n) whitener
+            return self.walk.whitener @ e.ravel()
+        return np.einsum("nij,nj->ni", self.W_g, e)
+
     def residuals(self, x: np.ndarray) -> np.ndarray:
         S_a, b_a, M_g, b_g, k_a, k_g, v = self.unpack(x)
         u = v / np.linalg.norm(v, axis=1, keepdims=True)
         pred_a = self.g * u @ S_a.T + b_a + np.outer(self.dT, k_a)
         r_a = np.einsum("nij,nj->ni", self.W_a, self.y_a - pred_a)
-        r_g = np.einsum("nij,nj->ni", self.W_g, self.y_g - b_g - np.outer(self.dT, k_g))
+        r_g = self._gyro_rest_res(b_g, k_g)
         r_t = self._turn_res(self._rotations(M_g, b_g, k_g), u)
         r_k = (np.concatenate([k_a, k_g]) - self.k0)[self.prior] * self.prior_w
         return np.concatenate([r_a.ravel(), r_g.ravel(), r_t.ravel(), r_k])
@@ -192,10 +219,19 @@ class JointProblem:
         for c in range(2):
             J_a[idx, :, nm + 2 * idx + c] = blk[:, :, c]
         J_g = np.zeros((n, 3, P))
-        J_g[:, :, 18:21] = -self.W_g
+        W_g = self.W_g
+        if self.walk is not None:  # (3n, n, 3): the dense whitener's columns per rest
+            W_g = self.walk.whitener.reshape(3 * n, n, 3)
+            J_g = np.zeros((3 * n, P))
+            J_g[:, 18:21] = -W_g.sum(axis=1)
+        else:
+            J_g[:, :, 18:21] = -W_g
         if self.fit_k:
             J_a[:, :, 21:24] = -self.W_a * self.dT[:, None, None]
-            J_g[:, :, 24:27] = -self.W_g * self.dT[:, None, None]
+            if self.walk is not None:
+                J_g[:, 24:27] = -np.einsum("rnj,n->rj", W_g, self.dT)
+            else:
+                J_g[:, :, 24:27] = -W_g * self.dT[:, None, None]
         J[: 3 * n] = J_a.reshape(3 * n, P)
         J[3 * n: 6 * n] = J_g.reshape(3 * n, P)
         R = self._rotations(M_g, b_g, k_g)
@@ -270,7 +306,7 @@ class JointML:
 
     name = "joint_ml"
     kind = "joint"
-    version = "2"
+    version = "3"
     params: ClassVar[type[Params]] = JointMLParams
 
     def solve(self, observations: JointObservations, params: JointMLParams) -> JointFit:
@@ -287,8 +323,10 @@ class JointML:
         M_g0 = Q @ obs.gyro.M  # the gyro follows the accelerometer into the lower gauge
         sigma_k = np.concatenate([np.asarray(t.details.get("sigma_k", [np.inf] * 3), float)
                                   for t in (obs.accel, obs.gyro)])
+        q, scatter = gyro_walk_intensity(obs.rests, obs.gyro, fit_k, params.gyro_bias_rw)
+        walk = BiasWalk.build(obs.rests, turns, q)
         prob = JointProblem(obs.rests, turns, obs.gravity, S0, obs.accel.b0, M_g0, obs.gyro.b0,
-                            obs.accel.k, obs.gyro.k, fit_k=fit_k, sigma_k=sigma_k)
+                            obs.accel.k, obs.gyro.k, fit_k=fit_k, sigma_k=sigma_k, walk=walk)
         sol = least_squares(prob.residuals, prob.x0, jac=prob.jacobian, method="lm",
                             max_nfev=params.max_nfev, x_scale="jac")
         x = sol.x
@@ -325,7 +363,14 @@ class JointML:
             "blocks": blocks,
             "noise_model": ("white: each rest's own sample covariance over its count (rest means); "
                             "turns: the rests' median gyro sample covariance integrated over the turn "
-                            "(sum dt^2); no bias drift, no earth rate"),
+                            "(sum dt^2); gyro bias random walk (intensity gyro_bias_walk.q): rest "
+                            "means correlated, each turn's bias smoothed from the rests, its "
+                            "uncertainty in the turn's noise; no accel bias drift, no earth rate"),
+            "gyro_bias_walk": {"q": q.tolist(), "q_unit": "rad^2/s^3 per axis",
+                               "sigma_rw": np.sqrt(q).tolist(), "sigma_rw_unit": "rad/s/sqrt(s)",
+                               "estimated": scatter is not None,
+                               "rest_scatter_sigma": None if scatter is None else float(np.sqrt(scatter)),
+                               "rest_scatter_sigma_unit": "rad/s, rest-to-rest, not modelled"},
             "k_prior_entries": len(prob.prior),
             "turn_angle_deg_max": float(np.degrees(rotation_angle(R)).max()),
             "rests": n, "turns": len(turns), "turns_saturated": len(obs.turns) - len(turns),
@@ -339,6 +384,24 @@ class JointML:
         k = {"accel": np.asarray(k_a), "gyro": np.asarray(k_g)}
         sigma_k = {"accel": sd[24:27], "gyro": sd[27:30]} if fit_k else {}
         return JointFit(triads, cov, details, k, sigma_k, rest_gravity=u, turns_used=used)
+
+
+def gyro_walk_intensity(rests: Rests, gyro: TriadCalibration, fit_k: bool,
+                        sigma_rw: float | None) -> tuple[np.ndarray, float | None]:
+    """(3,) gyro bias random-walk intensity, rad^2/s^3, and the rests' scatter beyond white
+    noise without time correlation, (rad/s)^2 (None when not estimated): the configured
+    ``sigma_rw`` (rad/s/sqrt(s)) squared, else REML from the rests' gyro means about the
+    start's ``b0 + k dT`` (level, gravity direction, and ``dT`` when ``k`` is fitted,
+    profiled out)."""
+    if sigma_rw is not None:
+        return np.full(3, float(sigma_rw) ** 2), None
+    dT = np.where(np.isfinite(rests.temperature), rests.temperature, T_REF_C) - T_REF_C
+    resid = rests.need("gyro") - gyro.bias(dT + T_REF_C)
+    # an attitude effect (g-sensitivity) is a regressor, not a walk: the residuals keep showing it
+    a = rests.need("accel")
+    X = np.column_stack([np.ones(len(rests)), a / np.linalg.norm(a, axis=1, keepdims=True),
+                         *([dT] if fit_k else [])])
+    return estimate_intensity(rests, resid, X)
 
 
 def block_statistics(r: np.ndarray, J: np.ndarray, C: np.ndarray, n: int, m: int) -> dict[str, dict]:

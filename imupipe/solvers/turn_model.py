@@ -24,6 +24,7 @@ import numpy as np
 from ..models import T_REF_C, TriadCalibration
 from ..observations import Rests, Turns
 from ..rotations import carry, pad_turns, rotation_angle, skew, turn_rotations
+from .bias_walk import BiasWalk, rest_intervals, turn_intervals
 
 
 def tangent_basis(u: np.ndarray) -> np.ndarray:
@@ -55,6 +56,19 @@ def carried_cov(v: np.ndarray, cov_phi: np.ndarray) -> np.ndarray:
 def model_temperature(T: np.ndarray) -> np.ndarray:
     """Temperatures for the models: unknown (NaN) is taken as the reference (no thermal term)."""
     return np.where(np.isfinite(T), T, T_REF_C)
+
+
+def turn_temperature(rests: Rests, turns: Turns) -> np.ndarray:
+    """(m,) degC at each turn: its two rests' mean temperatures interpolated in time to the
+    turn's midpoint (a long warm-up rest's mean is not its temperature at the end); unknown
+    (NaN) is the reference."""
+    T = model_temperature(rests.temperature)
+    p, q = np.asarray(turns.before), np.asarray(turns.after)
+    mid, _ = rest_intervals(rests)
+    t_turn, _ = turn_intervals(rests, turns)
+    span = mid[q] - mid[p]
+    w = np.clip(np.divide(t_turn - mid[p], span, out=np.full(len(p), 0.5), where=span > 0), 0, 1)
+    return T[p] + w * (T[q] - T[p])
 
 
 def gravity_directions(rests: Rests, accel: TriadCalibration) -> tuple[np.ndarray, np.ndarray]:
@@ -95,21 +109,27 @@ class TurnMismatch:
 
 
 def turn_mismatch(rests: Rests, turns: Turns, accel: TriadCalibration,
-                  gyro: TriadCalibration) -> TurnMismatch:
+                  gyro: TriadCalibration, bias_walk_q: np.ndarray | None = None) -> TurnMismatch:
     """Every turn's gravity mismatch under ``accel``/``gyro`` (any method's calibration).
 
-    Each turn's gyro bias is taken at the mean temperature of its two rests, as in the
-    joint likelihood; the gyro noise is the rests' median (``gyro_sample_cov``).
+    Each turn's gyro bias is taken at its temperature (``turn_temperature``), as in the
+    joint likelihood; the gyro noise is the rests' median (``gyro_sample_cov``). With a
+    bias random walk ``bias_walk_q`` (3,) rad^2/s^3, each turn's bias also carries the walk
+    smoothed from the rests' gyro means, and its uncertainty joins the gyro noise.
     """
     u, cov_u = gravity_directions(rests, accel)
     p, q = np.asarray(turns.before), np.asarray(turns.after)
     rate, dt = pad_turns(turns.t, turns.gyro)
-    T = model_temperature(rests.temperature)
-    bias = gyro.bias(0.5 * (T[p] + T[q]))  # (m, 3)
+    bias = gyro.bias(turn_temperature(rests, turns))  # (m, 3)
+    cov_phi = integrated_gyro_cov(gyro_sample_cov(rests), dt, gyro.M)
+    walk = BiasWalk.build(rests, turns, np.zeros(3) if bias_walk_q is None else bias_walk_q)
+    if walk.active:
+        bias = bias + walk.offsets(rests.need("gyro") - gyro.bias(model_temperature(rests.temperature)))
+        cov_phi = cov_phi + walk.rotation_cov(dt.sum(axis=1), gyro.M)
     R = turn_rotations((rate - bias[:, None, :]) @ gyro.M.T, dt)
     v = carry(R, u[p])
     d = u[q] - v
-    cov_g = carried_cov(v, integrated_gyro_cov(gyro_sample_cov(rests), dt, gyro.M))
+    cov_g = carried_cov(v, cov_phi)
     cov_r = np.swapaxes(R, -1, -2) @ cov_u[p] @ R + cov_u[q]
     E = tangent_basis(u[q])
     Et = np.swapaxes(E, -1, -2)

@@ -8,7 +8,8 @@ solver (default ``joint_ml``) refines both triads at once. Outputs a
 block and the noise model), and the residuals of the model at the optimum:
 ``residuals`` (per rest: accel mean vs the forward model at the fitted gravity
 direction, gyro mean vs the bias) and ``turn_residuals`` (per turn: the gravity
-mismatch after the calibrated gyro, whitened). See docs/method-b.md.
+mismatch after the calibrated gyro, whitened, with the gyro bias random walk the
+fit estimated). See docs/method-b.md.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from ..errors import SchemaError
 from ..models import Calibration, TriadCalibration, triads_to_table
 from ..observations import Rests, Turns
 from ..solvers.joint_ml import JointFit, JointObservations
-from ..solvers.turn_model import turn_mismatch
+from ..solvers.turn_model import turn_mismatch, turn_temperature
 from ._calib_common import concat_residuals, model_T, noise_details, residual_table
 
 STANDARD_GRAVITY = 9.80665
@@ -61,6 +62,10 @@ def refined_triads(fit: JointFit, start: Mapping[str, TriadCalibration], solver:
         extra = {"start_solver": start[sensor].solver, "joint": fit.details}
         if rests is not None:
             extra["noise"] = noise_details(rests, sensor)
+            walk = fit.details.get("gyro_bias_walk")
+            if sensor == "gyro" and walk is not None:  # the drift the fit modelled (joint_ml)
+                extra["noise"]["bias_random_walk"] = walk["sigma_rw"]
+                extra["noise"]["bias_random_walk_unit"] = "rad/s/sqrt(s), per axis"
         if sensor == "accel":
             extra["joint_covariance"] = np.asarray(fit.cov).tolist()
             extra["joint_covariance_order"] = ("M_accel row-major (9), b0_accel (3), M_gyro (9), "
@@ -113,7 +118,8 @@ def rest_residuals(rests: Rests, accel: TriadCalibration, gyro: TriadCalibration
 def turn_residuals(rests: Rests, turns: Turns, accel: TriadCalibration, gyro: TriadCalibration,
                    fit: JointFit) -> pa.Table:
     """A ``turn_residuals`` table of every wired turn under the refined calibration."""
-    tm = turn_mismatch(rests, turns, accel, gyro)
+    walk = fit.details.get("gyro_bias_walk", {}).get("q")
+    tm = turn_mismatch(rests, turns, accel, gyro, None if walk is None else np.asarray(walk))
     m = len(turns)
     used = np.ones(m, bool) if fit.turns_used is None else np.asarray(fit.turns_used, bool)
     chi2 = tm.chi2
@@ -129,7 +135,7 @@ def turn_residuals(rests: Rests, turns: Turns, accel: TriadCalibration, gyro: Tr
         "rest_before": turns.before.astype(np.int64), "rest_after": turns.after.astype(np.int64),
         "t_start_s": np.array([t[0] if len(t) else np.nan for t in turns.t], dtype=float),
         "t_end_s": np.array([t[-1] if len(t) else np.nan for t in turns.t], dtype=float),
-        "temperature": 0.5 * (rests.temperature[turns.before] + rests.temperature[turns.after]),
+        "temperature": turn_temperature(rests, turns),
         "used": used, "angle_deg": np.degrees(tm.angle),
         "measured": pa.array(list(tm.measured), type=l3), "predicted": pa.array(list(tm.predicted), type=l3),
         "residual": pa.array(list(tm.residual), type=l3), "mismatch_deg": np.degrees(mismatch),
@@ -154,7 +160,7 @@ def refine_joint(inputs: Mapping[str, pa.Table], params: RefineParams,
 
 STAGE = Stage(
     name="refine_joint",
-    version="2",
+    version="3",
     func=refine_joint,
     inputs={"rests": "rests", "turns": "turns", "gyro": "gyro",
             "accel_calibration": "calibration", "gyro_calibration": "calibration"},
