@@ -70,6 +70,8 @@ class Reader(Protocol):
     Optional: ``delegates(path) -> list[str]``, the other registered readers this
     reader hands parts of ``path`` to (a session manifest's ``reader = ...``);
     their distributions and versions enter the cache key like the reader's own.
+    Optional: ``inputs(path) -> list[Path]``, the other files whose bytes make the
+    recording (a manifest's data files); their digests enter the cache key.
     """
 
     name: str

@@ -27,7 +27,7 @@ from .. import __version__
 from ..errors import ImupipeError, MissingExtraError
 from ..plugins import Registry, make_registry
 from ..progress import progress
-from .cache import Cache, read_manifest, reader_identity
+from .cache import Cache, claimant, read_manifest, reader_identity, session_digest
 from .config import default_pipeline_path, load_pipeline
 from .dag import Pipeline
 from .runner import SessionRun, run_session
@@ -391,19 +391,23 @@ def status(
     for session, sid in pairs:
         manifest = read_manifest(out / sid / MANIFEST)
         spec, note = pipeline_for(manifest)
-        states = stage_states(spec, session, manifest, cache, _reader_now(session, spec, registry))
+        states = stage_states(spec, session, manifest, cache, *_reader_now(session, spec, registry))
         blocks.append(render(session, spec, states, out / sid, note))
     return "\n".join(blocks)
 
 
-def _reader_now(session: Path, pipeline: Pipeline, registry: Registry) -> dict | str | None:
-    """The reader that would read ``session`` now, or why none would."""
-    if not Path(session).is_file():
-        return None
+def _reader_now(
+    session: Path, pipeline: Pipeline, registry: Registry
+) -> tuple[dict | str | None, str | None]:
+    """The reader that would read ``session`` now (or why none would), and the session's digest."""
+    session = Path(session)
+    if not session.is_file():
+        return None, None
     try:
-        return reader_identity(registry, Path(session), pipeline.reader)
+        reader = claimant(registry, session, pipeline.reader)
+        return reader_identity(registry, reader, session), session_digest(session, reader)
     except ImupipeError as exc:
-        return f"cannot be read: {exc}"
+        return f"cannot be read: {exc}", session_digest(session)
 
 
 __all__ = [

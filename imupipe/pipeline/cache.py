@@ -23,7 +23,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tomllib
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -54,43 +53,15 @@ def sha256(text: str) -> str:
 # --------------------------------------------------------------------------- raw inputs
 
 
-def session_files(path: Path) -> list[Path]:
-    """The files whose bytes make a session: the file, plus those a ``.toml`` manifest names.
-
-    A manifest's string values that name an existing file (relative to the
-    manifest) are taken as its data files, whatever the manifest layout.
-    """
+def session_digest(path: Path, reader: Any = None) -> str:
+    """Digest of a session's bytes: the file, and the files its reader says it is made of
+    (the reader's optional ``inputs(path)``, e.g. a manifest's data files)."""
     path = Path(path)
-    files = [path]
-    if path.suffix.lower() == ".toml":
-        try:
-            raw = tomllib.loads(path.read_text())
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError, OSError):
-            return files  # the reader will say what is wrong
-        for text in _strings(raw):
-            candidate = path.parent / text
-            if len(text) < 4096 and candidate.is_file() and candidate.resolve() != path.resolve():
-                files.append(candidate)
-    return files
-
-
-def _strings(obj: Any):
-    if isinstance(obj, str):
-        yield obj
-    elif isinstance(obj, dict):
-        for v in obj.values():
-            yield from _strings(v)
-    elif isinstance(obj, list):
-        for v in obj:
-            yield from _strings(v)
-
-
-def session_digest(path: Path) -> str:
-    """Digest of a session's bytes (all its files, see ``session_files``)."""
-    path = Path(path)
-    parts = [[_relative(f, path.parent) if f != path else "", file_digest(f)]
-             for f in session_files(path)]
-    return sha256(canonical(sorted(parts)))
+    inputs = getattr(reader, "inputs", None)
+    files = [path, *(inputs(path) if callable(inputs) else [])]
+    parts = [[_relative(f, path.parent) if f != path else "", file_digest(f) if f.is_file() else None]
+             for f in files]
+    return sha256(canonical(sorted(parts, key=str)))
 
 
 def _relative(file: Path, folder: Path) -> str:
@@ -129,7 +100,14 @@ def distribution(registry: Registry, kind: str, name: str) -> dict | None:
     return {"name": component.distribution, "version": component.dist_version}
 
 
-def reader_identity(registry: Registry, path: Path, forced: str | None) -> dict:
+def claimant(registry: Registry, path: Path, forced: str | None):
+    """The reader that would read ``path`` (chosen by sniffing, nothing is read)."""
+    from ..ingest import choose_reader
+
+    return choose_reader(Path(path), registry, forced)
+
+
+def reader_identity(registry: Registry, reader: Any, path: Path) -> dict:
     """What makes a session's tables besides its bytes: the reader chosen for ``path``.
 
     ``{"name", "distribution", "version", "delegates": [...]}``: the reader's
@@ -138,9 +116,6 @@ def reader_identity(registry: Registry, path: Path, forced: str | None) -> dict:
     and the same for every reader a session manifest hands files to
     (the reader's optional ``delegates(path)``). Chosen by sniffing, nothing is read.
     """
-    from ..ingest import choose_reader
-
-    reader = choose_reader(Path(path), registry, forced)
     identity = _reader_entry(registry, reader.name)
     delegates = getattr(reader, "delegates", None)
     if callable(delegates):

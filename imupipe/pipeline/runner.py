@@ -31,6 +31,7 @@ from ..ingest import read_recording
 from ..plugins import Registry
 from .cache import (
     Cache,
+    claimant,
     key_parts,
     read_manifest,
     reader_identity,
@@ -104,11 +105,11 @@ RAW_UNIT_KEY = b"imupipe.raw_unit"  # table metadata: the values are in this uni
 class _Source:
     """The session's raw streams, read only when first needed."""
 
-    def __init__(
-        self, path: Path, pipeline: Pipeline, registry: Registry, digest: str, previous: dict | None
-    ):
-        self.path, self.pipeline, self.registry, self.digest = path, pipeline, registry, digest
-        self.reader = reader_identity(registry, path, pipeline.reader)
+    def __init__(self, path: Path, pipeline: Pipeline, registry: Registry, previous: dict | None):
+        self.path, self.pipeline, self.registry = path, pipeline, registry
+        reader = claimant(registry, path, pipeline.reader)
+        self.reader = reader_identity(registry, reader, path)
+        self.digest = digest = session_digest(path, reader)
         self._streams: dict[str, pa.Table] | None = None
         self._names: list[str] | None = None
         self._units: dict[str, str] | None = None
@@ -166,15 +167,12 @@ def run_session(
             f"{session}: is a directory; give a recording file or a session.toml "
             "(imupipe batch takes folders)"
         )
-    digest = session_digest(session)
     run = SessionRun(session, pipeline, cache)
     source = None
     error = None
     try:
         # choosing the reader may fail (no reader claims the file): recorded like any error
-        source = run.source = _Source(
-            session, pipeline, registry, digest, read_manifest(manifest_path)
-        )
+        source = run.source = _Source(session, pipeline, registry, read_manifest(manifest_path))
         for key, node in pipeline.nodes.items():
             record = _run_node(node, run, source, registry)
             run.records[key] = record
@@ -188,7 +186,7 @@ def run_session(
             manifest_path,
             {
                 "session": str(session.resolve()),
-                "session_digest": digest,
+                "session_digest": source.digest if source else None,
                 "device": pipeline.device,
                 "reader": source.reader if source else None,
                 "streams": source._names if source else None,

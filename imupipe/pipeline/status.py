@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from .cache import Cache, KeyParts, key_parts, session_digest, stream_digest
+from .cache import Cache, KeyParts, key_parts, stream_digest
 from .dag import Pipeline
 
 
@@ -30,15 +30,15 @@ def stage_states(
     manifest: dict | None,
     cache: Cache,
     reader: dict | str | None = None,
+    digest: str | None = None,
 ) -> list[StageState]:
     """The state of every stage of ``pipeline`` on ``session`` given its last run manifest.
 
     ``reader``: ``reader_identity`` of the reader that would read the session now,
-    or why none would (a string).
+    or why none would (a string); ``digest``: the session's digest now (None: no file).
     """
     manifest = manifest or {}
     records = manifest.get("stages", {})
-    digest = session_digest(session) if Path(session).is_file() else None
     if isinstance(reader, str):
         return [StageState(k, "stale", (reader,)) for k in pipeline.nodes]
     same_session = (

@@ -366,6 +366,14 @@ class ManifestReader:
     def read(self, path: Path) -> Recording:
         return read_manifest(Path(path))
 
+    def inputs(self, path: Path) -> list[Path]:
+        """The data files the manifest names (streams and the sections file)."""
+        manifest = load_manifest(Path(path))
+        names = [s.file for s in manifest.streams]
+        if manifest.sections is not None and manifest.sections.file is not None:
+            names.append(manifest.sections.file)
+        return [_file(Path(path), name) for name in names]
+
     def delegates(self, path: Path) -> list[str]:
         """The registered readers the manifest hands files to (they shape its tables too)."""
         return sorted({s.reader for s in load_manifest(Path(path)).streams if s.reader})

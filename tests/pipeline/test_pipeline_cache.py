@@ -137,23 +137,23 @@ def test_solver_version_bump_reruns_the_stages_using_it(
 
 
 def test_manifest_session_digest_covers_the_files_it_names(tmp_path):
-    from imupipe.pipeline.cache import session_digest, session_files
+    from imupipe.pipeline.cache import session_digest
+    from imupipe.readers.manifest import ManifestReader
 
     (tmp_path / "sub").mkdir()
     (tmp_path / "acc.csv").write_text("1,2,3\n")
     (tmp_path / "sub" / "gyro.csv").write_text("4,5,6\n")
     manifest = tmp_path / "session.toml"
     manifest.write_text(
-        '[session]\nname = "lab"\n[[files]]\npath = "acc.csv"\n[[files]]\npath = "sub/gyro.csv"\n'
+        '[session]\nname = "lab"\n'
+        '[[streams]]\nstream = "accel"\nfile = "acc.csv"\nrate_hz = 100\n'
+        '[[streams]]\nstream = "gyro"\nfile = "sub/gyro.csv"\nrate_hz = 100\n'
     )
-    assert session_files(manifest) == [
-        manifest,
-        tmp_path / "acc.csv",
-        tmp_path / "sub" / "gyro.csv",
-    ]
-    before = session_digest(manifest)
+    reader = ManifestReader()
+    assert reader.inputs(manifest) == [tmp_path / "acc.csv", tmp_path / "sub" / "gyro.csv"]
+    before = session_digest(manifest, reader)
     (tmp_path / "sub" / "gyro.csv").write_text("4,5,7\n")
-    assert session_digest(manifest) != before  # a data file changed, the manifest did not
+    assert session_digest(manifest, reader) != before  # a data file changed, the manifest did not
 
 
 def test_unreadable_cache_entry_is_a_clear_error(tmp_path, toy_registry, toy_pipeline, session):

@@ -23,6 +23,7 @@ import imupipe.readers
 from imupipe.hookspecs import hookimpl
 from imupipe.pipeline.api import run_sessions, status
 from imupipe.pipeline.cache import session_digest
+from imupipe.readers.manifest import ManifestReader
 
 
 def _run(registry, session, pipeline, out):
@@ -167,11 +168,11 @@ def test_manifest_naming_an_absolute_file_runs(tmp_path, toy_registry):
     manifest = write_manifest(
         folder / "session.toml", "abs", {"stream": "accel", "file": str(acc.resolve())}
     )
-    before = session_digest(manifest)
+    before = session_digest(manifest, ManifestReader())
     pipeline = tmp_path / "p.toml"
     pipeline.write_text(TOY_PIPELINE)
     registry, _ = toy_registry(imupipe.readers)
     written = _run(registry, manifest, pipeline, tmp_path / "out")
     assert written == [tmp_path / "out" / "session" / "calibration.json"]
     write_csv(acc, np.tile([0.1, 0.2, 9.8], (50, 1)))
-    assert session_digest(manifest) != before  # the absolute file's bytes count
+    assert session_digest(manifest, ManifestReader()) != before  # the absolute file's bytes count

@@ -12,9 +12,8 @@ import json
 
 import numpy as np
 import pytest
+from stage_chain import method_b_refine_inputs, run_stage, white_imu
 
-from imupipe import schemas
-from imupipe.components import BoundSolver
 from imupipe.models import Calibration
 from imupipe.plugins import make_registry
 from imupipe.sim.api import simulate_recording
@@ -25,46 +24,15 @@ RW_FACTOR = 2.0  # the estimated intensity's sigma within this factor of the sim
 CHI2_GROWTH = 1.5  # turn chi2/dof of the constant-bias model: far above the null band
 
 
-def _imu(seed: int) -> dict:
-    rng = np.random.default_rng(seed)
-
-    def triad(noise_sd: float, bias_rw: float = 0.0) -> dict:
-        S = np.eye(3) + np.diag(rng.uniform(-0.02, 0.02, 3)) + (1 - np.eye(3)) * rng.normal(0, 0.01, (3, 3))
-        return {"S": S.tolist(), "b0": rng.uniform(-0.05, 0.05, 3).tolist(), "noise_sd": noise_sd,
-                "bias_rw": bias_rw}
-
-    return {"accel": triad(0.5e-3 * 9.80665), "gyro": triad(np.radians(0.02), GYRO_RW)}
-
-
-def _run(registry, name: str, inputs: dict, **params) -> dict:
-    stage = registry.get("stages", name)
-    p = stage.params(**params)
-    solver = None
-    if stage.solver_kind:
-        found = registry.get("solvers", p.solver)
-        solver = BoundSolver(found, found.params(**p.solver_params))
-    out = stage.func(inputs, p, solver)
-    for port, schema_id in stage.outputs.items():
-        schemas.check(out[port], schema_id, f"{name} output {port!r}")
-    return out
-
-
 @pytest.fixture(scope="module")
 def drift_runs() -> dict[str, dict]:
     seed = 7
-    rec, _ = simulate_recording("gimbal", None, seed, imu=_imu(seed), grid_deg=45.0, n_rotations=30,
-                                rest_s=3.0)
-    dev = rec.devices["imu"]
+    rec, _ = simulate_recording("gimbal", None, seed, imu=white_imu(seed, gyro_bias_rw=GYRO_RW),
+                                grid_deg=45.0, n_rotations=30, rest_s=3.0)
     reg = make_registry()
-    seg = _run(reg, "segment_stillness", {"accel": dev["accel"], "gyro": dev["gyro"]})
-    acc = _run(reg, "calibrate_accel", {"rests": seg["rests"]}, solver="ellipsoid_svd",
-               solver_params={"square_root": "cholesky"})
-    gyr = _run(reg, "calibrate_gyro", {"rests": seg["rests"], "turns": seg["turns"], "gyro": dev["gyro"],
-                                       "accel": acc["calibration"]}, solver="gyro_integration")
-    inputs = {"rests": seg["rests"], "turns": seg["turns"], "gyro": dev["gyro"],
-              "accel_calibration": acc["calibration"], "gyro_calibration": gyr["calibration"]}
-    return {"walk": _run(reg, "refine_joint", inputs),
-            "constant": _run(reg, "refine_joint", inputs, solver_params={"gyro_bias_rw": 0.0})}
+    inputs = method_b_refine_inputs(reg, rec)
+    return {"walk": run_stage(reg, "refine_joint", inputs),
+            "constant": run_stage(reg, "refine_joint", inputs, solver_params={"gyro_bias_rw": 0.0})}
 
 
 def _blocks(out: dict) -> dict:

@@ -14,9 +14,9 @@ import numpy as np
 import pyarrow.compute as pc
 import pytest
 from method_b_synth import G, make_session, session_tables
+from stage_chain import method_b_refine_inputs, run_stage, white_imu
 
 from imupipe import schemas
-from imupipe.components import BoundSolver
 from imupipe.models import Calibration, TriadCalibration, triads_to_table
 from imupipe.observations import Rests, Turns
 from imupipe.plugins import make_registry
@@ -29,43 +29,11 @@ G_SENS = [[2e-5, 0.0, 0.0], [0.0, -1.5e-5, 0.0], [0.0, 0.0, 1e-5]]  # rad/s per 
 CHI2_GROWTH = 3.0  # chi2/dof with the omitted effect: far above the null band (< 1.4 here)
 
 
-def _imu(seed: int) -> dict:
-    """Scale/misalignment and bias errors with white noise only: no k, turn-on, drift, LSB, range."""
-    rng = np.random.default_rng(seed)
-
-    def triad(noise_sd: float) -> dict:
-        S = np.eye(3) + np.diag(rng.uniform(-0.02, 0.02, 3)) + (1 - np.eye(3)) * rng.normal(0, 0.01, (3, 3))
-        return {"S": S.tolist(), "b0": rng.uniform(-0.05, 0.05, 3).tolist(), "noise_sd": noise_sd}
-
-    return {"accel": triad(0.5e-3 * 9.80665), "gyro": triad(np.radians(0.02))}
-
-
-def _run(registry, name: str, inputs: dict, **params) -> dict:
-    stage = registry.get("stages", name)
-    p = stage.params(**params)
-    solver = None
-    if stage.solver_kind:
-        found = registry.get("solvers", p.solver)
-        solver = BoundSolver(found, found.params(**p.solver_params))
-    out = stage.func(inputs, p, solver)
-    for port, schema_id in stage.outputs.items():
-        schemas.check(out[port], schema_id, f"{name} output {port!r}")
-    return out
-
-
 def _refined(effects: dict | None, seed: int = 5) -> dict:
-    rec, _ = simulate_recording("gimbal", effects, seed, imu=_imu(seed), grid_deg=45.0,
+    rec, _ = simulate_recording("gimbal", effects, seed, imu=white_imu(seed), grid_deg=45.0,
                                 n_rotations=30, rest_s=3.0)
-    dev = rec.devices["imu"]
     reg = make_registry()
-    seg = _run(reg, "segment_stillness", {"accel": dev["accel"], "gyro": dev["gyro"]})
-    acc = _run(reg, "calibrate_accel", {"rests": seg["rests"]}, solver="ellipsoid_svd",
-               solver_params={"square_root": "cholesky"})
-    gyr = _run(reg, "calibrate_gyro", {"rests": seg["rests"], "turns": seg["turns"], "gyro": dev["gyro"],
-                                       "accel": acc["calibration"]}, solver="gyro_integration")
-    return _run(reg, "refine_joint", {"rests": seg["rests"], "turns": seg["turns"], "gyro": dev["gyro"],
-                                      "accel_calibration": acc["calibration"],
-                                      "gyro_calibration": gyr["calibration"]})
+    return run_stage(reg, "refine_joint", method_b_refine_inputs(reg, rec))
 
 
 @pytest.fixture(scope="module")
@@ -148,7 +116,7 @@ def test_turn_mismatch_at_the_truth_is_chi2_with_two_dof_per_turn():
     truth = [TriadCalibration("accel", np.linalg.inv(s.S_accel), s.b_accel),
              TriadCalibration("gyro", np.linalg.inv(s.S_gyro), s.b_gyro)]
     reg = make_registry()
-    out = _run(reg, "refine_joint", {**tables, "accel_calibration": triads_to_table(truth[:1]),
+    out = run_stage(reg, "refine_joint", {**tables, "accel_calibration": triads_to_table(truth[:1]),
                                      "gyro_calibration": triads_to_table(truth[1:])}, g_m_s2=G)
     rests = Rests.from_table(tables["rests"])
     tm = turn_mismatch(rests, Turns.from_tables(tables["turns"], tables["gyro"], rests.t0_ns), *truth)
