@@ -392,7 +392,7 @@ def status(
         manifest = read_manifest(out / sid / MANIFEST)
         spec, note = pipeline_for(manifest)
         states = stage_states(spec, session, manifest, cache, *_reader_now(session, spec, registry))
-        blocks.append(render(session, spec, states, out / sid, note))
+        blocks.append(render(session, spec, states, out / sid, note, (manifest or {}).get("error")))
     return "\n".join(blocks)
 
 

@@ -215,11 +215,13 @@ def _dict_changes(label: str, old: dict, new: dict) -> list[str]:
 
 
 def render(
-    session: Path, pipeline: Pipeline, states: list[StageState], run_dir: Path, note: str = ""
+    session: Path, pipeline: Pipeline, states: list[StageState], run_dir: Path, note: str = "",
+    last_error: str | None = None,
 ) -> str:
     """Text for one session: a header, then one line per stage.
 
-    ``note`` says where the pipeline came from when it was not given.
+    ``note`` says where the pipeline came from when it was not given; ``last_error``
+    why the last run failed (from run.json).
     """
     stale = sum(s.state == "stale" for s in states)
     head = (
@@ -227,7 +229,7 @@ def render(
         f"{stale} stale, {sum(s.state == 'fresh' for s in states)} fresh"
     )
     width = max((len(s.stage) for s in states), default=0)
-    lines = [head]
+    lines = [head] + ([f"  last run failed: {last_error}"] if last_error else [])
     for s in states:
         lines.append(f"  {s.state:<7} {s.stage:<{width}}  {'; '.join(s.reasons)}".rstrip())
     return "\n".join(lines)

@@ -111,3 +111,18 @@ def test_a_solver_change_is_said_once(tmp_path, toy_registry, toy_pipeline, sess
     registry, _ = toy_registry(OtherToySolver())
     lines = _lines(status([session], toy_pipeline, out, registry=registry))
     assert lines["mag"] == "stale solver changed toy_mean -> toy_mean_other"
+
+
+def test_status_says_why_the_last_run_failed(tmp_path, toy_registry, toy_pipeline):
+    import pytest
+
+    from imupipe.errors import ReaderError
+
+    registry, _ = toy_registry()
+    bad = tmp_path / "bad.arrowsession"
+    bad.write_bytes(b"not arrow at all")
+    out = tmp_path / "out"
+    with pytest.raises(ReaderError):
+        run_sessions([bad], toy_pipeline, out, quiet=True, registry=registry)
+    text = status([], None, out, registry=registry)
+    assert "last run failed: ReaderError:" in text and "not an Arrow IPC session" in text
