@@ -27,8 +27,8 @@ from ..errors import SchemaError
 from ..models import Calibration, TriadCalibration, triads_to_table
 from ..observations import Rests, Turns
 from ..solvers.joint_ml import JointFit, JointObservations
-from ..solvers.turn_model import turn_mismatch, turn_temperature
-from ._calib_common import concat_residuals, model_T, noise_details, residual_table
+from ..rotations import rotation_angle
+from ._calib_common import concat_residuals, noise_details, residual_table
 
 STANDARD_GRAVITY = 9.80665
 
@@ -62,10 +62,10 @@ def refined_triads(fit: JointFit, start: Mapping[str, TriadCalibration], solver:
         extra = {"start_solver": start[sensor].solver, "joint": fit.details}
         if rests is not None:
             extra["noise"] = noise_details(rests, sensor)
-            walk = fit.details.get("gyro_bias_walk")
-            if sensor == "gyro" and walk is not None:  # the drift the fit modelled (joint_ml)
+            walk = fit.details.get(f"{sensor}_bias_walk")
+            if walk is not None:  # the drift the fit modelled (joint_ml)
                 extra["noise"]["bias_random_walk"] = walk["sigma_rw"]
-                extra["noise"]["bias_random_walk_unit"] = "rad/s/sqrt(s), per axis"
+                extra["noise"]["bias_random_walk_unit"] = walk["sigma_rw_unit"] + ", per axis"
         if sensor == "accel":
             extra["joint_covariance"] = np.asarray(fit.cov).tolist()
             extra["joint_covariance_order"] = ("M_accel row-major (9), b0_accel (3), M_gyro (9), "
@@ -87,62 +87,89 @@ def fit_summary(fit: JointFit) -> dict:
             "blocks": d.get("blocks", {})}
 
 
-def rest_residuals(rests: Rests, accel: TriadCalibration, gyro: TriadCalibration, fit: JointFit,
-                   g: float) -> pa.Table:
-    """``residuals`` rows ``refine_joint``/accel|gyro/rest: each rest's mean against the model.
-
-    Accel: ``predict(g u_i, T)`` with ``u_i`` the fitted gravity direction (nuisance) of
-    the rest; gyro: the bias at the rest's temperature. ``normalised`` by the white noise
-    of the mean per axis; accel ``norm_error_*``: |g| error of the raw and calibrated mean.
-    """
+def rest_residuals(rests: Rests, fit: JointFit) -> pa.Table:
+    """``residuals`` rows ``refine_joint``/accel|gyro/rest: each rest's mean against the fitted
+    forward model (the gravity direction fitted as a nuisance, the bias walks' averages over
+    the rest). ``normalised``: the fit's whitened residual of the rest (whitened by its own
+    covariance and the walks' averaging variance, lower-triangular Cholesky: x, then y given x,
+    then z given x and y); accel ``norm_error_*``: |g| error of the raw and calibrated mean."""
+    lin = fit.linearised
+    model = lin.model
+    _, _, _, sig = model.residuals(lin.x_g, lin.x_l, signals=True)
     mid = 0.5 * (rests.t_start_s + rests.t_end_s)
-    T = model_T(rests.temperature)
-
-    def sigma(sensor: str) -> np.ndarray:
-        return np.sqrt(np.diagonal(rests.cov_of_mean(sensor), axis1=1, axis2=2))
-
-    y_a, y_g = rests.need("accel"), rests.need("gyro")
-    x = accel.apply(y_a, T)
-    nx = np.linalg.norm(x, axis=1)
-    # a solver that reports no nuisance directions: the calibrated measured ones
-    u = x / nx[:, None] if fit.rest_gravity is None else fit.rest_gravity
-    res_a = residual_table("refine_joint", "accel", "rest", mid, rests.temperature, y_a,
-                           accel.predict(g * u, T), sigma("accel"),
-                           np.linalg.norm(y_a, axis=1) / g - 1, nx / g - 1)
-    res_g = residual_table("refine_joint", "gyro", "rest", mid, rests.temperature, y_g,
-                           gyro.bias(T), sigma("gyro"))
-    table = concat_residuals([res_a, res_g])
+    tables = []
+    for sensor, block, pred in (("accel", "accel_rest", sig["pred_accel_rest"]),
+                                ("gyro", "gyro_rest", sig["pred_gyro_rest"])):
+        y = rests.need(sensor)
+        z = lin.r[lin.rows.of(block)].reshape(-1, 3)
+        extra = ()
+        if sensor == "accel":
+            P = model.unpack(lin.x_g)
+            x = (y - pred + sig["gravity_rest"] * model.g @ P["S_a"].T) @ np.linalg.inv(P["S_a"]).T
+            extra = (np.linalg.norm(y, axis=1) / model.g - 1, np.linalg.norm(x, axis=1) / model.g - 1)
+        t = residual_table("refine_joint", sensor, "rest", mid, rests.temperature, y, pred, None, *extra)
+        tables.append(t.set_column(t.schema.get_field_index("normalised"), "normalised",
+                                   pa.array(list(z), type=pa.list_(pa.float64(), 3))))
+    table = concat_residuals(tables)
     return schemas.stamp(table, "residuals", {"imupipe.summary": json.dumps(fit_summary(fit))})
 
 
-def turn_residuals(rests: Rests, turns: Turns, accel: TriadCalibration, gyro: TriadCalibration,
-                   fit: JointFit) -> pa.Table:
-    """A ``turn_residuals`` table of every wired turn under the refined calibration."""
-    walk = fit.details.get("gyro_bias_walk", {}).get("q")
-    tm = turn_mismatch(rests, turns, accel, gyro, None if walk is None else np.asarray(walk))
+def turn_residuals(rests: Rests, turns: Turns, fit: JointFit) -> pa.Table:
+    """A ``turn_residuals`` table of every wired turn under the refined calibration: the fit's
+    whitened turn rows (the gravity carried through the turn against the gravity fitted after
+    it); turns the fit left out (saturated) carry NaN."""
+    lin = fit.linearised
+    model = lin.model
     m = len(turns)
     used = np.ones(m, bool) if fit.turns_used is None else np.asarray(fit.turns_used, bool)
-    chi2 = tm.chi2
-    mismatch = np.arctan2(np.linalg.norm(np.cross(tm.predicted, tm.measured), axis=1),
-                          np.sum(tm.predicted * tm.measured, axis=1))
+    view = model.turn_view(lin.x_g, lin.x_l)
+    Q = fit.frame if fit.frame is not None else np.eye(3)
+
+    def spread(values: np.ndarray, fill: float = np.nan) -> np.ndarray:
+        out = np.full((m,) + values.shape[1:], fill)
+        out[used] = values
+        return out
+
+    w = lin.r[lin.rows.of("turn")].reshape(-1, 2)
+    pred, meas = spread(view["predicted"] @ Q), spread(view["measured"] @ Q)
+    chi2 = np.sum(spread(w) ** 2, axis=1)
+    P = model.unpack(lin.x_g)
+    sigma_rests = np.full(m, np.nan)
+    if used.any():
+        u = model.gravity(lin.x_l)[0]
+        cov_u = _direction_cov(rests, u, P, model.g)
+        R = view["rotation"]
+        p, q = model.p, model.qr
+        c = np.swapaxes(R, 1, 2) @ cov_u[p] @ R + cov_u[q]
+        sigma_rests[used] = np.sqrt(np.trace(c, axis1=1, axis2=2) / 2)
+    mismatch = np.arctan2(np.linalg.norm(np.cross(pred, meas), axis=1), np.sum(pred * meas, axis=1))
+    angle = spread(np.degrees(rotation_angle(view["rotation"])))
     l3, l2 = pa.list_(pa.float64(), 3), pa.list_(pa.float64(), 2)
     rows = int(2 * used.sum())
     summary = fit_summary(fit)
-    summary["turns"] = {"chi2": float(chi2[used].sum()), "rows": rows,
-                        "chi2_per_row": float(chi2[used].sum() / rows) if rows else None}
+    summary["turns"] = {"chi2": float(np.nansum(chi2)), "rows": rows,
+                        "chi2_per_row": float(np.nansum(chi2) / rows) if rows else None}
+    t_mid = np.array([0.5 * (t[0] + t[-1]) if len(t) else np.nan for t in turns.t])
     table = pa.table({
         "stage": ["refine_joint"] * m, "index": np.arange(m, dtype=np.int64),
         "rest_before": turns.before.astype(np.int64), "rest_after": turns.after.astype(np.int64),
         "t_start_s": np.array([t[0] if len(t) else np.nan for t in turns.t], dtype=float),
         "t_end_s": np.array([t[-1] if len(t) else np.nan for t in turns.t], dtype=float),
-        "temperature": turn_temperature(rests, turns),
-        "used": used, "angle_deg": np.degrees(tm.angle),
-        "measured": pa.array(list(tm.measured), type=l3), "predicted": pa.array(list(tm.predicted), type=l3),
-        "residual": pa.array(list(tm.residual), type=l3), "mismatch_deg": np.degrees(mismatch),
-        "whitened": pa.array(list(tm.whitened), type=l2), "chi2": chi2,
-        "sigma_gyro_deg": np.degrees(tm.sigma_gyro), "sigma_rests_deg": np.degrees(tm.sigma_rests),
+        "temperature": model.temperature_at(np.nan_to_num(t_mid)),
+        "used": used, "angle_deg": angle,
+        "measured": pa.array(list(meas), type=l3), "predicted": pa.array(list(pred), type=l3),
+        "residual": pa.array(list(meas - pred), type=l3), "mismatch_deg": np.degrees(mismatch),
+        "whitened": pa.array(list(spread(w)), type=l2), "chi2": chi2,
+        "sigma_gyro_deg": np.degrees(spread(view["sigma_gyro"])), "sigma_rests_deg": np.degrees(sigma_rests),
     })
     return schemas.stamp(table, "turn_residuals", {"imupipe.summary": json.dumps(summary)})
+
+
+def _direction_cov(rests: Rests, u: np.ndarray, P: dict, g: float) -> np.ndarray:
+    """(n, 3, 3) covariance of each rest's gravity direction from its accel mean's white noise
+    (first order: ``(I - u u^T) S^-1 / g``), gauge frame."""
+    A = (np.eye(3) - np.einsum("ni,nj->nij", u, u)) @ np.linalg.inv(P["S_a"]) / g
+    return A @ rests.cov_of_mean("accel") @ np.swapaxes(A, 1, 2)
 
 
 def refine_joint(inputs: Mapping[str, pa.Table], params: RefineParams,
@@ -154,13 +181,13 @@ def refine_joint(inputs: Mapping[str, pa.Table], params: RefineParams,
     fit = solver.solve(obs)
     acc, gyr = refined_triads(fit, {"accel": accel, "gyro": gyro}, solver.solver.name, rests)
     return {"calibration": triads_to_table([acc, gyr]),
-            "residuals": rest_residuals(rests, acc, gyr, fit, params.g_m_s2),
-            "turn_residuals": turn_residuals(rests, turns, acc, gyr, fit)}
+            "residuals": rest_residuals(rests, fit),
+            "turn_residuals": turn_residuals(rests, turns, fit)}
 
 
 STAGE = Stage(
     name="refine_joint",
-    version="3",
+    version="4",
     func=refine_joint,
     inputs={"rests": "rests", "turns": "turns", "gyro": "gyro",
             "accel_calibration": "calibration", "gyro_calibration": "calibration"},

@@ -21,7 +21,7 @@ from imupipe.models import Calibration, TriadCalibration, triads_to_table
 from imupipe.observations import Rests, Turns
 from imupipe.plugins import make_registry
 from imupipe.sim.api import simulate_recording
-from imupipe.solvers.turn_model import turn_mismatch
+from imupipe.solvers.joint_ml import JointMLParams, JointObservations, joint_model
 
 N_SD = 3.5
 GYRO_PARAMS = 12  # M_g (9), b_g (3): what the fit can absorb of the turn mismatches
@@ -109,8 +109,9 @@ def test_omitted_g_sensitivity_shows_in_turns_and_gyro_rests(null_run, g_sensiti
     assert blocks["turn"]["chi2_per_dof"] > CHI2_GROWTH
 
 
-def test_turn_mismatch_at_the_truth_is_chi2_with_two_dof_per_turn():
-    """Observation level, true calibration: nothing fitted, so chi2 / rows = 1 within sd."""
+def test_turn_rows_at_the_truth_are_chi2_with_two_dof_per_turn():
+    """Observation level, true calibration and true gravity directions: nothing fitted, so the
+    turn rows' chi2 / rows = 1 within its sd."""
     s = make_session(41, n_rests=60)
     tables = session_tables(s)
     truth = [TriadCalibration("accel", np.linalg.inv(s.S_accel), s.b_accel),
@@ -119,7 +120,11 @@ def test_turn_mismatch_at_the_truth_is_chi2_with_two_dof_per_turn():
     out = run_stage(reg, "refine_joint", {**tables, "accel_calibration": triads_to_table(truth[:1]),
                                      "gyro_calibration": triads_to_table(truth[1:])}, g_m_s2=G)
     rests = Rests.from_table(tables["rests"])
-    tm = turn_mismatch(rests, Turns.from_tables(tables["turns"], tables["gyro"], rests.t0_ns), *truth)
-    rows = 2 * len(tm.chi2)
-    assert abs(tm.chi2.sum() / rows - 1) < N_SD * np.sqrt(2 / rows)  # no parameter fitted here
-    assert out["turn_residuals"].num_rows == len(tm.chi2)
+    turns = Turns.from_tables(tables["turns"], tables["gyro"], rests.t0_ns)
+    model, _, _ = joint_model(JointObservations(rests, turns, G, *truth),
+                              JointMLParams(gyro_bias_rw=0.0, accel_bias_rw=0.0))
+    x_l = np.zeros(model.stages.size)
+    x_l[model.stages.delta] = np.einsum("nia,ni->na", model.B, s.gravity_body)  # the true directions
+    r = model.residuals(model.x_g0, x_l)[0][model.rows.of("turn")]
+    assert abs(r @ r / len(r) - 1) < N_SD * np.sqrt(2 / len(r))  # no parameter fitted here
+    assert 2 * out["turn_residuals"].num_rows == len(r)

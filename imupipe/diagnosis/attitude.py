@@ -1,0 +1,244 @@
+"""The attitude inside every motion, integrated from the calibrated gyro, and its sensitivities.
+
+Gyro samples are point values of a smooth body rate. Between consecutive samples
+``t_s`` and ``t_s+1`` (step ``d``) the rotation vector is the end-corrected
+trapezoid (Gregory's rule, fourth order for a smooth rate about a fixed axis)::
+
+    a_s = d (w_s + w_s+1) / 2 - d^2 / 12 (w'_s+1 - w'_s),     w' by central differences
+
+and the rotation from a motion's first sample to any instant is the ordered
+product of the steps' exact rotations ``exp(a_s)`` up to it, the last one partial
+(``w_s tau + (w_s+1 - w_s) tau^2 / (2 d)``). The turn rotation of the endpoint model
+is the product over the whole motion, so rests, turns and every sample in between
+share one attitude. All motions are flattened into one ragged array: products by
+a segmented log-depth scan (no padding, no loop per sample); the steps are a
+sparse linear stencil of the rates, applied alike to their derivatives.
+
+Sensitivities: changing step ``s``'s rotation vector by ``delta a`` turns the
+attitude at any later instant by ``phi = P_s J_l(a_s) delta a`` in the motion's
+start frame (``P_s`` the rotation before step ``s``, ``J_l`` the left Jacobian of
+``exp``), exactly to first order; ``sensitivity`` sums this over the steps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..rotations import quat_exp, quat_mul, quat_to_matrix, skew
+
+_SMALL = 1e-4
+
+
+def left_jacobian(a: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) left Jacobian of SO(3)'s exp at rotation vectors ``a`` (..., 3)."""
+    th2 = np.einsum("...i,...i->...", a, a)
+    th = np.sqrt(th2)
+    small = th < _SMALL
+    safe = np.where(small, 1.0, th)
+    c1 = np.where(small, 0.5 - th2 / 24.0, (1 - np.cos(safe)) / safe**2)
+    c2 = np.where(small, 1.0 / 6.0 - th2 / 120.0, (safe - np.sin(safe)) / safe**3)
+    K = skew(a)
+    return np.eye(3) + c1[..., None, None] * K + c2[..., None, None] * (K @ K)
+
+
+def segmented_scan(q: np.ndarray, seg: np.ndarray) -> np.ndarray:
+    """Inclusive ordered products of quaternions ``q`` (n, 4) within runs of equal ``seg`` (n,)
+    (Hillis-Steele: log2(n) vectorised passes)."""
+    q = q.copy()
+    n = len(q)
+    off = 1
+    while off < n:
+        same = seg[off:] == seg[:-off]
+        idx = np.flatnonzero(same) + off
+        q[idx] = quat_mul(q[idx - off], q[idx])
+        off *= 2
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def segmented_cumsum(x: np.ndarray, seg: np.ndarray) -> np.ndarray:
+    """Inclusive cumulative sums of ``x`` (n, ...) along axis 0 restarting at each new ``seg``."""
+    if not len(x):
+        return x.copy()
+    c = np.cumsum(x, axis=0)
+    first = np.r_[True, seg[1:] != seg[:-1]]
+    start = np.maximum.accumulate(np.where(first, np.arange(len(seg)), 0))
+    return c - (c[start] - x[start])  # minus the running sum before each run's first element
+
+
+def _integrals(t: np.ndarray, motion: np.ndarray, s: np.ndarray, tau: np.ndarray,
+               width: int = 6) -> sp.csr_matrix:
+    """(k, N) weights of the integral of the rate from sample ``s`` (k,) to ``tau`` (k,) s after it:
+    the integral of the polynomial through ``width`` samples of the motion around the step
+    (centred where the motion allows), exact for rates of degree ``width - 1``."""
+    k, N = len(s), len(t)
+    if not k:
+        return sp.csr_matrix((0, N))
+    first = np.searchsorted(motion, motion[s], "left")
+    count = np.searchsorted(motion, motion[s], "right") - first
+    w = np.minimum(count, width)
+    lo = np.clip(s - (w - 1) // 2, first, first + count - w)  # window start, inside the motion
+    j = np.arange(width)
+    valid = j[None, :] < w[:, None]
+    idx = np.where(valid, lo[:, None] + j, s[:, None])
+    d = np.where(s + 1 < first + count, t[np.minimum(s + 1, N - 1)] - t[s], 1.0)
+    d = np.where(d > 0, d, 1.0)
+    x = (t[idx] - t[s][:, None]) / d[:, None]  # (k, width) local nodes
+    # rows: nodes, columns: monomials; padded nodes and monomials form an identity block
+    V = np.where(valid[:, :, None] & valid[:, None, :], x[:, :, None] ** j[None, None, :], 0.0)
+    V += np.where(~valid[:, :, None] & (j[:, None] == j[None, :])[None], 1.0, 0.0)
+    coef = np.linalg.inv(V)  # (k, monomial, node): polynomial coefficients per node's value
+    u = (tau / d)[:, None]
+    mono = np.where(valid, u ** (j + 1) / (j + 1), 0.0)  # integral of x^j from 0 to u
+    wts = d[:, None] * np.einsum("km,kmn->kn", mono, coef)
+    wts = np.where(valid, wts, 0.0)
+    return sp.csr_matrix((wts.ravel(), (np.repeat(np.arange(k), width), idx.ravel())), shape=(k, N))
+
+
+@dataclass(frozen=True)
+class MotionSamples:
+    """The gyro samples of m motions, flattened: ``t`` (N,) s, ``y`` (N, 3) raw gyro, ``motion``
+    (N,) motion index (sorted, times increasing within each). ``origin``/``end`` (m,) s: each
+    motion's first and last sample time (NaN when empty)."""
+
+    t: np.ndarray
+    y: np.ndarray
+    motion: np.ndarray
+    origin: np.ndarray
+    end: np.ndarray
+
+    @classmethod
+    def from_turns(cls, t: Sequence[np.ndarray], y: Sequence[np.ndarray]) -> MotionSamples:
+        m = len(t)
+        origin = np.array([x[0] if len(x) else np.nan for x in t], float)
+        end = np.array([x[-1] if len(x) else np.nan for x in t], float)
+        if not m or not sum(len(x) for x in t):
+            return cls(np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64), origin, end)
+        return cls(np.concatenate([np.asarray(x, float) for x in t]),
+                   np.concatenate([np.asarray(x, float).reshape(-1, 3) for x in y]),
+                   np.repeat(np.arange(m), [len(x) for x in t]).astype(np.int64), origin, end)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    @property
+    def count(self) -> int:
+        return len(self.origin)
+
+
+@dataclass(frozen=True)
+class Points:
+    """Instants inside motions: ``h`` (k,) the step holding each (-1: the motion has no step),
+    ``tau`` (k,) s into it, ``W`` (k, N) the weights of the rate integral up to the instant
+    within its step."""
+
+    h: np.ndarray
+    tau: np.ndarray
+    W: sp.csr_matrix
+
+
+class Quadrature:
+    """What integrating the motions needs from the time stamps alone (computed once): the steps
+    (``step`` (S,) the first sample of each) and their weights ``A`` (S, N)."""
+
+    def __init__(self, samples: MotionSamples):
+        self.samples = samples
+        same_next = np.r_[samples.motion[1:] == samples.motion[:-1], False] if len(samples) else \
+            np.zeros(0, bool)
+        self.step = np.flatnonzero(same_next)  # a step starts at every sample with a successor
+        self.seg = samples.motion[self.step]
+        self.A = _integrals(samples.t, samples.motion, self.step,
+                            samples.t[self.step + 1] - samples.t[self.step])
+        self.last = np.flatnonzero(np.r_[self.seg[1:] != self.seg[:-1], True]) if len(self.step) else \
+            np.zeros(0, int)
+
+    def points(self, t: np.ndarray, motion: np.ndarray) -> Points:
+        """The instants ``t`` (k,) s of motions ``motion`` (k,) (clipped to each motion's span)."""
+        ms = self.samples
+        t = np.asarray(t, float)
+        k = len(t)
+        lo = np.searchsorted(ms.motion, motion, "left")  # each motion's first sample
+        hi = np.searchsorted(ms.motion, motion, "right") - 1
+        has = hi > lo
+        if not has.any():
+            return Points(np.full(k, -1), np.zeros(k), sp.csr_matrix((k, len(ms))))
+        base, span = ms.t.min(), 2 * (np.ptp(ms.t) + 1.0)
+        tc = np.clip(t, ms.t[np.minimum(lo, len(ms) - 1)], ms.t[np.maximum(hi, 0)])
+        key = ms.motion * span + (ms.t - base)
+        s = np.clip(np.searchsorted(key, motion * span + (tc - base), "right") - 1, lo, np.maximum(hi - 1, lo))
+        step_of = np.full(len(ms), -1)
+        step_of[self.step] = np.arange(len(self.step))
+        h = np.where(has, step_of[s], -1)
+        tau = np.where(has, np.clip(tc - ms.t[s], 0, None), 0.0)
+        W = _integrals(ms.t, ms.motion, np.where(has, s, 0), tau)
+        return Points(h, tau, (sp.diags(has.astype(float)) @ W).tocsr())
+
+
+@dataclass(frozen=True)
+class Attitude:
+    """Integrated rotations of every motion under calibrated rates ``omega`` (N, 3) rad/s.
+
+    ``a`` (S, 3) the steps' rotation vectors, ``R_before`` (S, 3, 3) the rotation (body at the
+    step's start -> body at the motion's start) before each step, ``total`` (m, 3, 3) each
+    motion's rotation at its last sample (identity for motions of fewer than two samples).
+    """
+
+    quad: Quadrature
+    omega: np.ndarray
+    a: np.ndarray
+    R_before: np.ndarray
+    total: np.ndarray
+
+    @classmethod
+    def integrate(cls, quad: Quadrature, omega: np.ndarray) -> Attitude:
+        a = quad.A @ omega if len(quad.step) else np.zeros((0, 3))
+        seg = quad.seg
+        q = segmented_scan(quat_exp(a), seg)  # after each step
+        first = np.r_[True, seg[1:] != seg[:-1]] if len(seg) else np.zeros(0, bool)
+        prev = np.vstack([[[1.0, 0, 0, 0]], q[:-1]]) if len(seg) else np.zeros((0, 4))
+        prev[first] = [1.0, 0.0, 0.0, 0.0]
+        total = np.tile(np.eye(3), (quad.samples.count, 1, 1))
+        if len(seg):
+            total[seg[quad.last]] = quat_to_matrix(q[quad.last])
+        return cls(quad, omega, a, quat_to_matrix(prev), total)
+
+    def rotation_at(self, pts: Points) -> np.ndarray:
+        """(k, 3, 3) rotation (body at the instant -> body at the motion's start)."""
+        if not len(pts.h):
+            return np.zeros((0, 3, 3))
+        R0 = self.R_before[np.maximum(pts.h, 0)] if len(self.a) else np.tile(np.eye(3), (len(pts.h), 1, 1))
+        R0 = np.where((pts.h >= 0)[:, None, None], R0, np.eye(3))
+        return R0 @ quat_to_matrix(quat_exp(pts.W @ self.omega))
+
+    def _per_step(self, D: np.ndarray) -> np.ndarray:
+        """(S, 3, P) each step's attitude change per unit parameter change, start frame."""
+        P = D.shape[2]
+        C = self.R_before @ left_jacobian(self.a)
+        return np.einsum("hij,hjp->hip", C, (self.quad.A @ D.reshape(len(D), 3 * P)).reshape(-1, 3, P))
+
+    def sensitivity(self, D: np.ndarray, pts: Points) -> np.ndarray:
+        """(k, 3, P) start-frame attitude change per unit change of parameters at the instants
+        ``pts``, given ``D`` (N, 3, P) each sample's calibrated-rate derivative."""
+        P = D.shape[2]
+        k = len(pts.h)
+        if not k or not len(self.a):
+            return np.zeros((k, 3, P))
+        per = self._per_step(D)
+        cum = segmented_cumsum(per, self.quad.seg)
+        hh = np.maximum(pts.h, 0)
+        ok = (pts.h >= 0)[:, None, None]
+        before = np.where(ok, cum[hh] - per[hh], 0.0)
+        part = self.R_before[hh] @ left_jacobian(pts.W @ self.omega)
+        part = np.einsum("kij,kjp->kip", part, (pts.W @ D.reshape(len(D), 3 * P)).reshape(k, 3, P))
+        return before + np.where(ok, part, 0.0)
+
+    def end_sensitivity(self, D: np.ndarray) -> np.ndarray:
+        """(m, 3, P) the same at each motion's last sample (zeros for motions without steps)."""
+        out = np.zeros((self.quad.samples.count, 3, D.shape[2]))
+        if len(self.a):
+            cum = segmented_cumsum(self._per_step(D), self.quad.seg)
+            out[self.quad.seg[self.quad.last]] = cum[self.quad.last]
+        return out

@@ -1,0 +1,727 @@
+"""The calibrated model as a forward model of the whole recording, and its linearisation.
+
+One module owns the physics of the nominal model of accelerometer and gyroscope
+(``spec/effects.md``: ``y = S x + b0 + k (T - 25) + noise``) as it predicts a
+recording made of rests and the motions between them, with every nuisance carried
+as an unknown of the fit:
+
+- **rests** -- each rest's mean accelerometer reading is ``S_a (g u_i) + b_a + k_a dT``
+  with ``u_i`` the rest's unknown gravity direction (2 dof); its mean gyro reading is
+  the gyro bias ``b_g + k_g dT``;
+- **bias random walks** (gyro and accelerometer, ``imupipe.solvers.brownian``): the
+  bias also wanders as a Wiener process; its states at every rest boundary are
+  unknowns joined by independent increments (prior rows); a rest sees the walk's
+  average over its interval, a motion its value interpolated across it. A rest that
+  starts a new power cycle frees the walk (a new turn-on bias);
+- **motions** -- the attitude is propagated from the rest before by the calibrated gyro
+  (``attitude.py``). Its error is a Wiener process driven by the gyro's white noise;
+  only its tilt matters for gravity, so it is carried as a 2-D Brownian path ``z(t)``
+  (gnomonic coordinates of the gravity direction in the motion's start frame), pinned
+  at the start by the rest before (``z_0 = delta_p``) and at the end by the rest after,
+  with free knots in between (``knot_s`` apart) and independent increments as prior
+  rows. With one knot interval this is the turn model of ``turn_model.py`` (the
+  gravity carried through the turn against gravity measured after it); with knots,
+  every accelerometer sample inside the motion is predicted and the path is
+  conditioned on both ends (a Brownian bridge), so nothing is counted twice.
+
+The rows (whitened: each block by its own noise) are named blocks with per-row
+metadata (``Rows``): ``accel_rest``, ``gyro_rest``, ``motion_prior`` (the attitude
+path's increments: the gyro's evidence in motion), ``accel_motion`` (every
+accelerometer sample inside a motion), ``walk_gyro``/``walk_accel`` (the walks'
+increments), ``k_prior`` (a thermal stage's k). The unknowns are the globals
+``x_g`` (named column blocks, ``Globals``) and the locals ``x_l`` grouped in one
+stage per rest (its direction, its walk states, the knots of the motion after it),
+so the normal matrix is block-tridiagonal (``solvers/blocktri.py``) and every
+evaluation, solve and leverage is linear in the recording's length.
+
+Jacobians are analytic (checked against finite differences in
+``tests/diagnosis/test_forward.py``). Frames: the instrument frame of the
+accelerometer in the lower-triangular gauge (``S_a`` lower-triangular).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..errors import SolverError
+from ..models import T_REF_C
+from ..observations import Rests, Turns
+from ..rotations import skew
+from ..solvers.triad_covariance import shape_basis
+from .attitude import Attitude, MotionSamples, Quadrature
+
+_LOWER = shape_basis("lower")  # (6, 3, 3)
+BLOCKS = ("accel_rest", "gyro_rest", "walk_gyro", "walk_accel", "turn", "accel_motion", "k_prior")
+SENSOR_OF = {"accel_rest": "accel", "gyro_rest": "gyro", "turn": "gyro", "accel_motion": "accel",
+             "walk_gyro": "gyro", "walk_accel": "accel", "k_prior": "prior"}
+KIND_OF = {"accel_rest": "rest", "gyro_rest": "rest", "turn": "motion", "accel_motion": "motion",
+           "walk_gyro": "prior", "walk_accel": "prior", "k_prior": "prior"}
+
+
+def tangent_basis(u: np.ndarray) -> np.ndarray:
+    """(n, 3, 2) orthonormal bases of the planes normal to unit vectors ``u`` (n, 3)."""
+    helper = np.where(np.abs(u[:, [0]]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+    e1 = np.cross(u, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    return np.stack([e1, np.cross(u, e1)], axis=-1)
+
+
+def _whiteners(cov: np.ndarray) -> np.ndarray:
+    """(..., k, k) ``L^-1`` with ``L L^T = cov``."""
+    return np.linalg.inv(np.linalg.cholesky(cov))
+
+
+def _normalise(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vectors (n, 3) and their derivative (n, 3, 3) w.r.t. ``v``: ``(I - u u^T) / |v|``."""
+    nv = np.linalg.norm(v, axis=1)
+    u = v / nv[:, None]
+    return u, (np.eye(3) - np.einsum("ni,nj->nij", u, u)) / nv[:, None, None]
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+@dataclass(frozen=True)
+class MotionAccel:
+    """Accelerometer samples inside the motions: ``t`` (k,) s, ``y`` (k, 3) raw, ``motion`` (k,)
+    the motion each belongs to (sorted by motion, then time)."""
+
+    t: np.ndarray
+    y: np.ndarray
+    motion: np.ndarray
+
+    @classmethod
+    def select(cls, t: np.ndarray, y: np.ndarray, rests: Rests, turns: Turns) -> MotionAccel:
+        """The samples of ``t``/``y`` strictly between each turn's two rests."""
+        ts, ys, ms = [], [], []
+        for j, (p, q) in enumerate(zip(turns.before, turns.after, strict=True)):
+            i0 = np.searchsorted(t, rests.t_end_s[p], "right")
+            i1 = np.searchsorted(t, rests.t_start_s[q], "left")
+            ts.append(t[i0:i1])
+            ys.append(y[i0:i1])
+            ms.append(np.full(i1 - i0, j))
+        if not ts:
+            return cls(np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64))
+        return cls(np.concatenate(ts), np.concatenate(ys), np.concatenate(ms).astype(np.int64))
+
+
+@dataclass(frozen=True)
+class Noise:
+    """The recording's noise model: one raw sample's covariance per triad (3, 3) and the bias
+    random-walk intensities (3,) per axis, (unit)^2/s (0: a constant bias)."""
+
+    accel_sample: np.ndarray
+    gyro_sample: np.ndarray
+    q_accel: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    q_gyro: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @classmethod
+    def from_rests(cls, rests: Rests, q_accel=None, q_gyro=None) -> Noise:
+        """White noise from the rests' median one-sample covariance (robust to a bad rest)."""
+        return cls(np.median(rests.cov["accel"], axis=0), np.median(rests.cov["gyro"], axis=0),
+                   np.zeros(3) if q_accel is None else np.broadcast_to(q_accel, 3).astype(float),
+                   np.zeros(3) if q_gyro is None else np.broadcast_to(q_gyro, 3).astype(float))
+
+
+@dataclass(frozen=True)
+class Start:
+    """The starting values of the nominal parameters (lower-triangular gauge) and the temperature
+    coefficients' prior (``sigma_k`` (6,), inf where none)."""
+
+    S_a: np.ndarray
+    b_a: np.ndarray
+    M_g: np.ndarray
+    b_g: np.ndarray
+    k_a: np.ndarray
+    k_g: np.ndarray
+    sigma_k: np.ndarray = field(default_factory=lambda: np.full(6, np.inf))
+
+
+# --------------------------------------------------------------------------- layout
+
+
+@dataclass(frozen=True)
+class Globals:
+    """Named column blocks of ``x_g``: ``slices[name]``; ``size``."""
+
+    slices: dict[str, slice]
+    size: int
+
+    @classmethod
+    def build(cls, blocks: Sequence[tuple[str, int]]) -> Globals:
+        out, o = {}, 0
+        for name, n in blocks:
+            out[name] = slice(o, o + n)
+            o += n
+        return cls(out, o)
+
+    def names(self) -> list[str]:
+        """One name per column, e.g. ``M_g[0,1]``, ``b_a[2]``."""
+        out = []
+        for name, s in self.slices.items():
+            n = s.stop - s.start
+            out += [f"{name}[{i}]" for i in range(n)]
+        return out
+
+
+@dataclass(frozen=True)
+class Rows:
+    """Metadata of every row of the whitened residual: ``block`` (N,) index into ``BLOCKS``,
+    ``index`` (N,) the rest / motion / boundary / sample it belongs to, ``axis`` (N,) 0-2 or
+    -1, ``t`` (N,) s (the rest's or sample's time; the knot interval's middle)."""
+
+    block: np.ndarray
+    index: np.ndarray
+    axis: np.ndarray
+    t: np.ndarray
+
+    def of(self, name: str) -> np.ndarray:
+        return self.block == BLOCKS.index(name)
+
+    @property
+    def sensor(self) -> np.ndarray:
+        return np.array([SENSOR_OF[BLOCKS[b]] for b in self.block])
+
+    @property
+    def kind(self) -> np.ndarray:
+        return np.array([KIND_OF[BLOCKS[b]] for b in self.block])
+
+
+class Stages:
+    """Where each stage's locals sit in ``x_l``: per rest ``i``, its ``delta`` (2), the walk
+    states at its start (unless ``pinned``) and end (3 each, per walk) and the free knots of
+    the motion after it (2 each)."""
+
+    def __init__(self, n: int, walks: Sequence[str], pinned: np.ndarray, knots: np.ndarray):
+        sizes = 2 + 3 * len(walks) * 2 - 3 * len(walks) * pinned.astype(int) + 2 * np.asarray(knots, int)
+        self.offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+        self.size = int(self.offsets[-1])
+        first = self.offsets[:-1]
+        self.delta = first[:, None] + np.arange(2)  # (n, 2) columns
+        cursor = first + 2
+        self.walk_cols: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # start (-1: pinned), end
+        for w in walks:
+            a = np.where(pinned, -1, cursor)
+            cursor = cursor + np.where(pinned, 0, 3)
+            self.walk_cols[w] = (a, cursor.copy())
+            cursor = cursor + 3
+        self.knot_start = cursor
+
+
+# --------------------------------------------------------------------------- the model
+
+
+class JointModel:
+    """Forward model and whitened residuals of accelerometer + gyroscope over a recording.
+
+    ``rests``/``turns``: the segmentation (turns join consecutive rests); ``gravity`` m/s^2;
+    ``start``: starting values; ``noise``: the noise model; ``fit_k``: the temperature
+    coefficients are unknowns (else the start's are applied); ``accel``: accelerometer samples
+    inside the motions (per-sample mode) or None (rest means and turn end-points only);
+    ``knot_s``: spacing of the attitude-error knots in per-sample mode; ``power_on`` (n,) bool:
+    rest i starts a new power cycle (the walks restart free); ``temperature``: (t, T) arrays
+    for temperatures inside motions (default: the rests' interpolated in time).
+    """
+
+    def __init__(self, rests: Rests, turns: Turns, gravity: float, start: Start, noise: Noise,
+                 fit_k: bool = False, accel: MotionAccel | None = None, knot_s: float = 0.25,
+                 power_on: np.ndarray | None = None,
+                 temperature: tuple[np.ndarray, np.ndarray] | None = None):
+        n, m = len(rests), len(turns)
+        if n < 1:
+            raise SolverError("the joint model needs at least one rest")
+        if m and np.any(turns.after != turns.before + 1):
+            raise SolverError("the joint model needs turns between consecutive rests")
+        self.rests, self.turns, self.g, self.noise, self.fit_k = rests, turns, float(gravity), noise, fit_k
+        self.n, self.m = n, m
+        self.start = start
+        self.sampled = accel is not None
+        self.walks = [w for w, q in (("wg", noise.q_gyro), ("wa", noise.q_accel)) if np.any(q > 0)]
+        self.q = {"wg": np.asarray(noise.q_gyro, float), "wa": np.asarray(noise.q_accel, float)}
+        self.power_on = np.zeros(n, bool) if power_on is None else np.asarray(power_on, bool)
+        pinned = np.zeros(n, bool)
+        pinned[0] = True  # the walks' level is the bias itself
+        self._temperature = temperature
+        # ---- rests
+        self.mid = 0.5 * (rests.t_start_s + rests.t_end_s)
+        self.length = rests.t_end_s - rests.t_start_s
+        self.dT = self.rest_temperature() - T_REF_C
+        self.y_a, self.y_g = rests.need("accel"), rests.need("gyro")
+        v0 = (self.y_a - np.outer(self.dT, start.k_a) - start.b_a) @ np.linalg.inv(start.S_a).T
+        self.u0 = v0 / np.linalg.norm(v0, axis=1, keepdims=True)
+        self.B = tangent_basis(self.u0)
+        bridge = {w: np.einsum("n,a->na", self.length / 12.0, self.q[w]) for w in ("wg", "wa")}
+        self.W_a = _whiteners(rests.cov_of_mean("accel") + bridge["wa"][:, :, None] * np.eye(3))
+        self.W_g = _whiteners(rests.cov_of_mean("gyro") + bridge["wg"][:, :, None] * np.eye(3))
+        # ---- motions
+        self.motions = MotionSamples.from_turns(turns.t, turns.gyro)
+        self.quad = Quadrature(self.motions)
+        ms = self.motions
+        self.p, self.qr = np.asarray(turns.before, int), np.asarray(turns.after, int)
+        self.dT_gyro = self.temperature_at(ms.t) - T_REF_C
+        gap_start = rests.t_end_s[self.p] if m else np.zeros(0)
+        gap_len = (rests.t_start_s[self.qr] - gap_start) if m else np.zeros(0)
+        self.lam_gyro = self._walk_fraction(ms.t, ms.motion, gap_start, gap_len)
+        self.accel = accel if accel is not None else MotionAccel(np.zeros(0), np.zeros((0, 3)),
+                                                                 np.zeros(0, np.int64))
+        self.dT_acc = self.temperature_at(self.accel.t) - T_REF_C
+        self.accel_points = self.quad.points(self.accel.t, self.accel.motion)
+        self.lam_acc = self._walk_fraction(self.accel.t, self.accel.motion, gap_start, gap_len)
+        self.W_sample = _whiteners(noise.accel_sample)
+        # ---- knots: (m,) intervals per motion, their times
+        dur = np.where(np.isfinite(ms.end - ms.origin), ms.end - ms.origin, 0.0)
+        self.K = np.ones(m, int) if not self.sampled else np.maximum(1, np.round(dur / knot_s)).astype(int)
+        if self.sampled:
+            has = np.bincount(self.accel.motion, minlength=m) > 0
+            self.K = np.where(has, self.K, 1)
+        knots_free = np.zeros(n, int)
+        if m:
+            knots_free[self.p] = self.K - 1
+        self.stages = Stages(n, self.walks, pinned, knots_free)
+        self.knot_t = [ms.origin[j] + (ms.end[j] - ms.origin[j]) * np.arange(self.K[j] + 1) / self.K[j]
+                       for j in range(m)]
+        # ---- globals
+        blocks = [("S_a", 6), ("b_a", 3), ("M_g", 9), ("b_g", 3)]
+        if fit_k:
+            blocks += [("k_a", 3), ("k_g", 3)]
+        self.glob = Globals.build(blocks)
+        sk = np.asarray(start.sigma_k, float)
+        self.k_prior = np.flatnonzero(np.isfinite(sk) & (sk > 0)) if fit_k else np.zeros(0, int)
+        self.k_prior_w = 1.0 / sk[self.k_prior]
+        self.k0 = np.concatenate([start.k_a, start.k_g])
+        self.x_g0 = np.concatenate([start.S_a[np.tril_indices(3)], start.b_a, start.M_g.ravel(), start.b_g,
+                                    *([start.k_a, start.k_g] if fit_k else [])])
+        # the attitude-error increments' covariance, fixed at the start (one quadratic form)
+        self.Qk_w = self._knot_whiteners()
+        self.x_l0 = self._initial_locals()
+        self.rows = self._rows()
+
+    # ------------------------------------------------------------------ helpers
+    def temperature_at(self, t: np.ndarray) -> np.ndarray:
+        """degC at times ``t`` (s): the temperature stream when given, else the rests' means
+        interpolated in time; unknown is the reference (no thermal term)."""
+        t = np.asarray(t, float)
+        if self._temperature is not None and len(self._temperature[0]):
+            return np.interp(t, *self._temperature)
+        T = self.rests.temperature
+        ok = np.isfinite(T)
+        if not ok.any():
+            return np.full(t.shape, T_REF_C)
+        return np.interp(t, self.mid[ok], T[ok])
+
+    def rest_temperature(self) -> np.ndarray:
+        """(n,) degC: each rest's mean temperature (the regressor of a mean reading); from the
+        temperature stream when given (averaged over the rest), else the rests' own."""
+        if self._temperature is None or not len(self._temperature[0]):
+            return np.where(np.isfinite(self.rests.temperature), self.rests.temperature, T_REF_C)
+        t, T = self._temperature
+        c = np.concatenate([[0.0], np.cumsum(T)])
+        i0 = np.searchsorted(t, self.rests.t_start_s, "left")
+        i1 = np.searchsorted(t, self.rests.t_end_s, "right")
+        inside = i1 > i0
+        mean = np.divide(c[i1] - c[i0], i1 - i0, out=np.zeros(self.n), where=inside)
+        return np.where(inside, mean, np.interp(self.mid, t, T))
+
+    def accel_prediction(self, P: dict, f: np.ndarray, t: np.ndarray,
+                         walk: np.ndarray | None = None) -> np.ndarray:
+        """Raw accelerometer readings (k, 3) for specific force ``f`` (k, 3) at times ``t`` (k,):
+        ``S_a f + b_a + k_a (T(t) - 25) + walk``."""
+        pred = f @ P["S_a"].T + P["b_a"] + np.outer(self.temperature_at(t) - T_REF_C, P["k_a"])
+        return pred if walk is None else pred + walk
+
+    def _walk_fraction(self, t, motion, gap_start, gap_len) -> np.ndarray:
+        if not len(t):
+            return np.zeros(0)
+        gl = gap_len[motion]
+        return np.clip(np.divide(t - gap_start[motion], gl, out=np.full(len(t), 0.5), where=gl > 0), 0, 1)
+
+    def unpack(self, x_g: np.ndarray) -> dict[str, np.ndarray]:
+        s = self.glob.slices
+        S_a = np.zeros((3, 3))
+        S_a[np.tril_indices(3)] = x_g[s["S_a"]]
+        out = {"S_a": S_a, "b_a": x_g[s["b_a"]], "M_g": x_g[s["M_g"]].reshape(3, 3), "b_g": x_g[s["b_g"]]}
+        out["k_a"] = x_g[s["k_a"]] if self.fit_k else self.start.k_a
+        out["k_g"] = x_g[s["k_g"]] if self.fit_k else self.start.k_g
+        return out
+
+    def walk_states(self, x_l: np.ndarray, w: str) -> tuple[np.ndarray, np.ndarray]:
+        """(n, 3) the walk ``w`` at each rest's start and end (zeros when pinned/absent)."""
+        if w not in self.walks:
+            return np.zeros((self.n, 3)), np.zeros((self.n, 3))
+        a, b = self.stages.walk_cols[w]
+        A = np.where(a[:, None] >= 0, x_l[np.maximum(a, 0)[:, None] + np.arange(3)], 0.0)
+        B = x_l[b[:, None] + np.arange(3)]
+        return A, B
+
+    def gravity(self, x_l: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(n, 3) unit gravity at each rest and (n, 3, 2) its derivative w.r.t. ``delta``."""
+        d = x_l[self.stages.delta]
+        u, du = _normalise(self.u0 + np.einsum("nij,nj->ni", self.B, d))
+        return u, du @ self.B
+
+    def _rates(self, P: dict, x_l: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Calibrated rates (N, 3) of the motions' gyro samples and their derivatives (N, 3, 21)
+        w.r.t. (M_g (9), b_g (3), k_g (3), walk at the motion's start (3), at its end (3))."""
+        ms = self.motions
+        N = len(ms)
+        wa, wb = self.walk_states(x_l, "wg")
+        j = ms.motion
+        lam = self.lam_gyro[:, None]
+        walk = (1 - lam) * wb[self.p[j]] + lam * wa[self.qr[j]] if N else np.zeros((0, 3))
+        e = ms.y - P["b_g"] - np.outer(self.dT_gyro, P["k_g"]) - walk
+        omega = e @ P["M_g"].T
+        D = np.zeros((N, 3, 21))
+        for i in range(3):
+            D[:, i, 3 * i:3 * i + 3] = e
+        D[:, :, 9:12] = -P["M_g"]
+        D[:, :, 12:15] = -P["M_g"] * self.dT_gyro[:, None, None]
+        D[:, :, 15:18] = -P["M_g"] * (1 - lam)[:, :, None]
+        D[:, :, 18:21] = -P["M_g"] * lam[:, :, None]
+        return omega, D
+
+    def _knot_whiteners(self) -> list[np.ndarray]:
+        """Per motion, (K_j, 2, 2) whiteners of the attitude-path increments: the gyro's white noise
+        integrated over each knot interval, tilt part in the start rest's tangent plane, plus the
+        gyro walk's wander about its interpolation across the motion (``q T^3 / 12`` in all)."""
+        P = self.unpack(self.x_g0)
+        omega, _ = self._rates(P, self.x_l0_zero())
+        att = Attitude.integrate(self.quad, omega)
+        ms = self.motions
+        Sg = P["M_g"] @ self.noise.gyro_sample @ P["M_g"].T
+        # sample s's white noise turns the attitude by its quadrature weight times the rate error,
+        # in the frame of the attitude at the sample
+        wq = np.asarray(self.quad.A.sum(axis=0)).ravel() if len(ms) else np.zeros(0)
+        R = np.tile(np.eye(3), (len(ms), 1, 1))
+        if len(self.quad.step):
+            R[self.quad.step] = att.R_before
+            R[self.quad.step[self.quad.last] + 1] = att.total[self.quad.seg[self.quad.last]]
+        Phi_s = wq[:, None, None] ** 2 * (R @ Sg @ np.swapaxes(R, 1, 2))
+        out = []
+        qg = float(np.mean(self.q["wg"])) if "wg" in self.walks else 0.0
+        for j in range(self.m):
+            sel = ms.motion == j
+            K = self.K[j]
+            k = np.clip(np.searchsorted(self.knot_t[j], ms.t[sel], "right") - 1, 0, K - 1)
+            Phi = np.zeros((K, 3, 3))
+            np.add.at(Phi, k, Phi_s[sel])
+            T = ms.end[j] - ms.origin[j] if np.isfinite(ms.end[j]) else 0.0
+            if qg and T > 0:
+                Phi += qg * T**3 / 12.0 / K * (P["M_g"] @ P["M_g"].T)
+            p = self.p[j]
+            X = skew(self.u0[p]) @ self.B[p]  # tilt of gravity per unit rotation, in-plane
+            Q = np.einsum("ai,kij,jb->kab", X.T, Phi, X) + 1e-30 * np.eye(2)
+            # in gnomonic coordinates at u0_p, d z = B^T (phi x u0) = -(X^T phi) up to sign
+            out.append(_whiteners(Q))
+        return out
+
+    def x_l0_zero(self) -> np.ndarray:
+        return np.zeros(self.stages.size)
+
+    def _initial_locals(self) -> np.ndarray:
+        """Zero directions and walks; interior knots on the line between the end-points."""
+        x = np.zeros(self.stages.size)
+        if not self.m or not self.sampled:
+            return x
+        zK = self._endpoints(self.unpack(self.x_g0), x)[0]
+        for j in range(self.m):
+            K = self.K[j]
+            if K > 1:
+                frac = np.arange(1, K) / K
+                x[self.stages.knot_start[self.p[j]] + np.arange(2 * (K - 1))] = np.outer(frac, zK[j]).ravel()
+        return x
+
+    def _endpoints(self, P: dict, x_l: np.ndarray):
+        """Gnomonic end-point ``z_K`` (m, 2) of every motion and what it needs for derivatives."""
+        omega, D = self._rates(P, x_l)
+        att = Attitude.integrate(self.quad, omega)
+        u, du = self.gravity(x_l)
+        w = np.einsum("mij,mj->mi", att.total, u[self.qr]) if self.m else np.zeros((0, 3))
+        u0p, Bp = self.u0[self.p], self.B[self.p]
+        den = np.einsum("mi,mi->m", u0p, w)
+        zK = np.einsum("mia,mi->ma", Bp, w) / den[:, None]
+        G = (np.swapaxes(Bp, 1, 2) - np.einsum("ma,mi->mai", zK, u0p)) / den[:, None, None]  # dz/dw
+        phi_T = att.end_sensitivity(D)  # (m, 3, 21)
+        dz_gyro = np.einsum("mai,mij,mjp->map", G, -skew(w), phi_T)  # (m, 2, 21)
+        dz_dq = np.einsum("mai,mij,mjk->mak", G, att.total, du[self.qr])  # (m, 2, 2)
+        return zK, dz_gyro, dz_dq, att, D, omega, u, du
+
+    def turn_view(self, x_g: np.ndarray, x_l: np.ndarray) -> dict[str, np.ndarray]:
+        """Per motion, in the body frame at its end (gauge frame): ``predicted`` (m, 3) the rest
+        before's gravity carried through the calibrated motion, ``measured`` (m, 3) the rest
+        after's, ``rotation`` (m, 3, 3), ``sigma_gyro`` (m,) rad, the RMS 1-sigma per component
+        of the attitude error the gyro's noise leaves at the end."""
+        P = self.unpack(x_g)
+        omega, _ = self._rates(P, x_l)
+        R = Attitude.integrate(self.quad, omega).total
+        u = self.gravity(x_l)[0]
+        pred = np.einsum("mji,mj->mi", R, u[self.p]) if self.m else np.zeros((0, 3))
+        sig = []
+        for W in self.Qk_w:
+            Q = sum(np.linalg.inv(w.T @ w) for w in W)  # increments' covariances add up
+            sig.append(np.sqrt(np.trace(Q) / 2))
+        return {"predicted": pred, "measured": u[self.qr], "rotation": R, "sigma_gyro": np.array(sig)}
+
+    # ------------------------------------------------------------------ rows
+    def _rows(self) -> Rows:
+        n, m = self.n, self.m
+        parts = []
+
+        def add(block: str, index, axis, t) -> None:
+            index = np.asarray(index)
+            parts.append((np.full(len(index), BLOCKS.index(block)), index, np.asarray(axis), np.asarray(t)))
+
+        ax = np.tile(np.arange(3), n)
+        add("accel_rest", np.repeat(np.arange(n), 3), ax, np.repeat(self.mid, 3))
+        add("gyro_rest", np.repeat(np.arange(n), 3), ax, np.repeat(self.mid, 3))
+        for w, name in (("wg", "walk_gyro"), ("wa", "walk_accel")):
+            if w in self.walks:
+                pairs = self._walk_pairs(w)
+                add(name, np.repeat(np.arange(len(pairs[0])), 3), np.tile(np.arange(3), len(pairs[0])),
+                    np.repeat(pairs[3], 3))
+        idx, tt = [], []
+        for j in range(m):
+            kt = self.knot_t[j]
+            idx.append(np.repeat(np.full(self.K[j], j), 2))
+            tt.append(np.repeat(0.5 * (kt[1:] + kt[:-1]), 2))
+        if m:
+            add("turn", np.concatenate(idx), np.full(2 * self.K.sum(), -1), np.concatenate(tt))
+        if self.sampled and len(self.accel.t):
+            k = len(self.accel.t)
+            add("accel_motion", np.repeat(np.arange(k), 3), np.tile(np.arange(3), k),
+                np.repeat(self.accel.t, 3))
+        if len(self.k_prior):
+            add("k_prior", self.k_prior, np.full(len(self.k_prior), -1), np.full(len(self.k_prior), np.nan))
+        block, index, axis, t = (np.concatenate([p[i] for p in parts]) for i in range(4))
+        return Rows(block.astype(np.int64), index.astype(np.int64), axis.astype(np.int64), t.astype(float))
+
+    def _walk_pairs(self, w: str):
+        """Consecutive walk states: (prev column or -1 pinned, next column, dt (s), midpoint time)."""
+        a, b = self.stages.walk_cols[w]
+        prev, nxt, dts, mids = [], [], [], []
+        rs = self.rests
+        for i in range(self.n):
+            if i > 0 and not self.power_on[i]:
+                prev.append(b[i - 1])
+                nxt.append(a[i])
+                dts.append(rs.t_start_s[i] - rs.t_end_s[i - 1])
+                mids.append(0.5 * (rs.t_start_s[i] + rs.t_end_s[i - 1]))
+            prev.append(a[i])
+            nxt.append(b[i])
+            dts.append(self.length[i])
+            mids.append(self.mid[i])
+        return np.array(prev), np.array(nxt), np.maximum(np.array(dts), 1e-9), np.array(mids)
+
+    # ------------------------------------------------------------------ residuals
+    def residuals(self, x_g: np.ndarray, x_l: np.ndarray, signals: bool = False):
+        """Whitened residual ``r`` (N,), ``J_g`` (N, P_g) dense, ``J_l`` (N, P_l) CSR; with
+        ``signals`` also a dict of the model's intermediate quantities (predictions, gravity)."""
+        P = self.unpack(x_g)
+        n, g, gl = self.n, self.g, self.glob.slices
+        Pg, Pl = self.glob.size, self.stages.size
+        S_a = P["S_a"]
+        r_parts, Jg_parts, trip = [], [], []
+        row0 = 0
+
+        def block(r: np.ndarray, Jg: np.ndarray) -> int:
+            nonlocal row0
+            r_parts.append(r)
+            Jg_parts.append(Jg)
+            start = row0
+            row0 += len(r)
+            return start
+
+        def local(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray) -> None:
+            keep = cols >= 0
+            trip.append((rows[keep].ravel(), cols[keep].ravel(), vals[keep].ravel()))
+
+        zK, dz_gyro, dz_dq, att, D, omega, u, du = self._endpoints(P, x_l) if self.m else \
+            (None,) * 6 + self.gravity(x_l)
+        wga, wgb = self.walk_states(x_l, "wg")
+        waa, wab = self.walk_states(x_l, "wa")
+        # ---- accel rests
+        pred_a = g * u @ S_a.T + P["b_a"] + np.outer(self.dT, P["k_a"]) + 0.5 * (waa + wab)
+        r = np.einsum("nij,nj->ni", self.W_a, self.y_a - pred_a)
+        Jg = np.zeros((n, 3, Pg))
+        Jg[:, :, gl["S_a"]] = -g * np.einsum("nij,kjl,nl->nik", self.W_a, _LOWER, u)
+        Jg[:, :, gl["b_a"]] = -self.W_a
+        if self.fit_k:
+            Jg[:, :, gl["k_a"]] = -self.W_a * self.dT[:, None, None]
+        s0 = block(r.ravel(), Jg.reshape(3 * n, Pg))
+        rows3 = s0 + 3 * np.arange(n)[:, None] + np.arange(3)  # (n, 3)
+        blk = -g * np.einsum("nij,jk,nkl->nil", self.W_a, S_a, du)  # (n, 3, 2)
+        local(np.repeat(rows3[:, :, None], 2, 2), np.repeat(self.stages.delta[:, None, :], 3, 1), blk)
+        if "wa" in self.walks:
+            a, b = self.stages.walk_cols["wa"]
+            for cols in (a, b):
+                cc = np.where(cols[:, None, None] >= 0, cols[:, None, None] + np.arange(3)[None, None, :], -1)
+                local(np.repeat(rows3[:, :, None], 3, 2), np.repeat(cc, 3, 1), -0.5 * self.W_a)
+        # ---- gyro rests
+        pred_g = P["b_g"] + np.outer(self.dT, P["k_g"]) + 0.5 * (wga + wgb)
+        r = np.einsum("nij,nj->ni", self.W_g, self.y_g - pred_g)
+        Jg = np.zeros((n, 3, Pg))
+        Jg[:, :, gl["b_g"]] = -self.W_g
+        if self.fit_k:
+            Jg[:, :, gl["k_g"]] = -self.W_g * self.dT[:, None, None]
+        s0 = block(r.ravel(), Jg.reshape(3 * n, Pg))
+        rows3 = s0 + 3 * np.arange(n)[:, None] + np.arange(3)
+        if "wg" in self.walks:
+            a, b = self.stages.walk_cols["wg"]
+            for cols in (a, b):
+                cc = np.where(cols[:, None, None] >= 0, cols[:, None, None] + np.arange(3)[None, None, :], -1)
+                local(np.repeat(rows3[:, :, None], 3, 2), np.repeat(cc, 3, 1), -0.5 * self.W_g)
+        # ---- walk increments
+        for w in self.walks:
+            prev, nxt, dts, _ = self._walk_pairs(w)
+            k = len(prev)
+            sq = np.sqrt(self.q[w][None, :] * dts[:, None])  # (k, 3)
+            xn = x_l[nxt[:, None] + np.arange(3)]
+            xp = np.where(prev[:, None] >= 0, x_l[np.maximum(prev, 0)[:, None] + np.arange(3)], 0.0)
+            s0 = block(((xn - xp) / sq).ravel(), np.zeros((3 * k, Pg)))
+            rows = s0 + 3 * np.arange(k)[:, None] + np.arange(3)
+            local(rows, nxt[:, None] + np.arange(3), 1.0 / sq)
+            local(rows, np.where(prev[:, None] >= 0, prev[:, None] + np.arange(3), -1), -1.0 / sq)
+        sig = {"pred_accel_rest": pred_a, "pred_gyro_rest": pred_g, "gravity_rest": u}
+        if self.m:
+            self._motion_rows(P, x_l, zK, dz_gyro, dz_dq, att, D, omega, u, du, block, local, sig)
+        # ---- temperature-coefficient prior
+        if len(self.k_prior):
+            k_all = np.concatenate([P["k_a"], P["k_g"]])
+            Jg = np.zeros((len(self.k_prior), Pg))
+            ks = gl["k_a"].start
+            Jg[np.arange(len(self.k_prior)), ks + self.k_prior] = self.k_prior_w
+            block((k_all - self.k0)[self.k_prior] * self.k_prior_w, Jg)
+        r = np.concatenate(r_parts)
+        J_g = np.vstack(Jg_parts)
+        rr, cc, vv = (np.concatenate([t[i] for t in trip]) for i in range(3)) if trip else (
+            np.zeros(0, int),) * 2 + (np.zeros(0),)
+        J_l = sp.csr_matrix((vv, (rr, cc)), shape=(len(r), Pl))
+        return (r, J_g, J_l, sig) if signals else (r, J_g, J_l)
+
+    def _gyro_cols(self, j: np.ndarray) -> tuple[list[tuple[str | None, np.ndarray]], np.ndarray]:
+        """Where the 21 rate-derivative columns of motions ``j`` go: globals M_g, b_g, [k_g], and
+        the gyro walk's local columns at the motion's start and end (-1: pinned/absent)."""
+        gl = self.glob.slices
+        cols_g = np.r_[np.arange(gl["M_g"].start, gl["M_g"].stop), np.arange(gl["b_g"].start, gl["b_g"].stop),
+                       np.arange(gl["k_g"].start, gl["k_g"].stop) if self.fit_k else np.full(3, -1)]
+        if "wg" in self.walks:
+            a, b = self.stages.walk_cols["wg"]
+            wb = b[self.p[j]][:, None] + np.arange(3)
+            wa = np.where(a[self.qr[j]][:, None] >= 0, a[self.qr[j]][:, None] + np.arange(3), -1)
+            cols_l = np.hstack([wb, wa])
+        else:
+            cols_l = np.full((len(j), 6), -1)
+        return cols_g, cols_l
+
+    def _motion_rows(self, P, x_l, zK, dz_gyro, dz_dq, att, D, omega, u, du, block, local, sig) -> None:
+        m, Pg = self.m, self.glob.size
+        cols_g, cols_l = self._gyro_cols(np.arange(m))
+        gsel = cols_g >= 0
+        # ---- attitude-path increments (prior rows): z_0 = delta_p, free interior knots, z_K
+        for j in range(m):
+            K, p, q = self.K[j], self.p[j], self.qr[j]
+            ks = self.stages.knot_start[p]
+            interior = x_l[ks:ks + 2 * (K - 1)].reshape(K - 1, 2)
+            z = np.vstack([x_l[self.stages.delta[p]], interior, zK[j]])
+            W = self.Qk_w[j]  # (K, 2, 2)
+            r = np.einsum("kab,kb->ka", W, z[1:] - z[:-1])
+            Jg = np.zeros((K, 2, Pg))
+            Jg[-1][:, cols_g[gsel]] = (W[-1] @ dz_gyro[j])[:, :15][:, gsel]
+            s0 = block(r.ravel(), Jg.reshape(2 * K, Pg))
+            rows = s0 + 2 * np.arange(K)[:, None] + np.arange(2)  # (K, 2)
+            knot_cols = np.vstack([self.stages.delta[p], ks + np.arange(2 * (K - 1)).reshape(K - 1, 2),
+                                   np.full((1, 2), -2)])  # -2: the end-point (a function)
+            for side, sgn in ((slice(1, None), 1.0), (slice(None, -1), -1.0)):
+                kc = knot_cols[side]  # (K, 2) columns of z_{k+1} (sgn +) or z_k (sgn -)
+                real = kc[:, 0] >= 0
+                if real.any():
+                    local(np.repeat(rows[real][:, :, None], 2, 2), np.repeat(kc[real][:, None, :], 2, 1),
+                          sgn * W[real])
+            Wl = W[-1]
+            local(np.repeat(rows[-1][:, None], 2, 1), np.repeat(self.stages.delta[q][None, :], 2, 0),
+                  Wl @ dz_dq[j])
+            local(np.repeat(rows[-1][:, None], 6, 1), np.repeat(cols_l[j][None, :], 2, 0),
+                  (Wl @ dz_gyro[j])[:, 15:])
+        if not (self.sampled and len(self.accel.t)):
+            return
+        self._sample_rows(P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, cols_l)
+
+    def _sample_rows(self, P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, cols_l):
+        acc = self.accel
+        k = len(acc.t)
+        j = acc.motion
+        p, q = self.p[j], self.qr[j]
+        Pg, gl, g, S_a = self.glob.size, self.glob.slices, self.g, P["S_a"]
+        R = att.rotation_at(self.accel_points)  # (k, 3, 3)
+        Phi = att.sensitivity(D, self.accel_points)  # (k, 3, 21)
+        # knot interval and weight
+        kidx = np.zeros(k, int)
+        mu = np.zeros(k)
+        for jj in np.unique(j):
+            sel = j == jj
+            kt = self.knot_t[jj]
+            ki = np.clip(np.searchsorted(kt, acc.t[sel], "right") - 1, 0, self.K[jj] - 1)
+            kidx[sel] = ki
+            mu[sel] = np.clip((acc.t[sel] - kt[ki]) / (kt[ki + 1] - kt[ki]), 0, 1)
+        Kj = self.K[j]
+        ks = self.stages.knot_start[p]
+
+        def knot_value(idx: np.ndarray) -> np.ndarray:
+            out = np.empty((k, 2))
+            first, last = idx == 0, idx == Kj
+            mid = ~first & ~last
+            out[first] = x_l[self.stages.delta[p[first]]]
+            out[last] = zK[j[last]]
+            out[mid] = x_l[(ks[mid] + 2 * (idx[mid] - 1))[:, None] + np.arange(2)]
+            return out
+
+        z = (1 - mu)[:, None] * knot_value(kidx) + mu[:, None] * knot_value(kidx + 1)
+        u0p, Bp = self.u0[p], self.B[p]
+        nvec, dn = _normalise(u0p + np.einsum("kia,ka->ki", Bp, z))
+        ub = np.einsum("kji,kj->ki", R, nvec)  # gravity in the body at the sample
+        Uz = np.einsum("kji,kjl,kla->kia", R, dn, Bp)  # d ub / d z  (k, 3, 2)
+        Uphi = np.einsum("kji,kjl->kil", R, skew(nvec))  # d ub / d phi (k, 3, 3)
+        lam = self.lam_acc[:, None]
+        waa, wab = self.walk_states(x_l, "wa")
+        walk = (1 - lam) * wab[p] + lam * waa[q]
+        f = g * ub
+        pred = self.accel_prediction(P, f, acc.t, walk)
+        r = (acc.y - pred) @ self.W_sample.T
+        WS = -g * self.W_sample @ S_a  # d r / d ub
+        Jg = np.zeros((k, 3, Pg))
+        Jg[:, :, gl["S_a"]] = -np.einsum("ij,ljm,km->kil", self.W_sample, _LOWER, f)
+        Jg[:, :, gl["b_a"]] = -self.W_sample
+        if self.fit_k:
+            Jg[:, :, gl["k_a"]] = -self.W_sample * self.dT_acc[:, None, None]
+        dr_dz = np.einsum("ij,kja->kia", WS, Uz)  # (k, 3, 2)
+        dr_gyro = np.einsum("ij,kjl,klp->kip", WS, Uphi, Phi)  # (k, 3, 21)
+        at_end = kidx + 1 == Kj
+        dr_gyro[at_end] += mu[at_end, None, None] * np.einsum("kia,kap->kip", dr_dz[at_end], dz_gyro[j[at_end]])
+        gsel = cols_g >= 0
+        Jg[:, :, cols_g[gsel]] += dr_gyro[:, :, :15][:, :, gsel]
+        s0 = block(r.ravel(), Jg.reshape(3 * k, Pg))
+        rows = s0 + 3 * np.arange(k)[:, None] + np.arange(3)
+        rows2 = np.repeat(rows[:, :, None], 2, 2)
+        for idx, wgt in ((kidx, 1 - mu), (kidx + 1, mu)):
+            first, last = idx == 0, idx == Kj
+            mid = ~first & ~last
+            vals = wgt[:, None, None] * dr_dz
+            local(rows2[first], np.repeat(self.stages.delta[p[first]][:, None, :], 3, 1), vals[first])
+            mc = (ks[mid] + 2 * (idx[mid] - 1))[:, None] + np.arange(2)
+            local(rows2[mid], np.repeat(mc[:, None, :], 3, 1), vals[mid])
+            dq = np.einsum("kia,kab->kib", vals[last], dz_dq[j[last]])
+            local(rows2[last], np.repeat(self.stages.delta[q[last]][:, None, :], 3, 1), dq)
+        cl = cols_l[j]  # (k, 6)
+        local(np.repeat(rows[:, :, None], 6, 2), np.repeat(cl[:, None, :], 3, 1), dr_gyro[:, :, 15:])
+        if "wa" in self.walks:
+            a, b = self.stages.walk_cols["wa"]
+            cb = b[p][:, None] + np.arange(3)
+            ca = np.where(a[q][:, None] >= 0, a[q][:, None] + np.arange(3), -1)
+            local(np.repeat(rows[:, :, None], 3, 2), np.repeat(cb[:, None, :], 3, 1),
+                  -(1 - lam)[:, :, None] * self.W_sample)
+            local(np.repeat(rows[:, :, None], 3, 2), np.repeat(ca[:, None, :], 3, 1),
+                  -lam[:, :, None] * self.W_sample)
+        sig.update(pred_accel_motion=pred, gravity_motion=ub)

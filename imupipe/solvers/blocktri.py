@@ -1,0 +1,252 @@
+"""Sparse least squares in time order: nuisances in a block-tridiagonal chain, a few global unknowns.
+
+The joint calibration problem (``imupipe.diagnosis.forward``) has this shape: the
+unknowns are a handful of *global* parameters (scale, bias, ...) and many *local*
+nuisances grouped in *stages* along time (a rest's gravity direction, the bias
+random walk at its boundaries, the attitude error of the motion that follows),
+and every residual row touches the globals and the locals of at most two
+consecutive stages. The normal matrix is then block-tridiagonal in the locals,
+bordered by a dense global block::
+
+    A = [[A_ll, A_lg],      A_ll block-tridiagonal (stage blocks D_i, sub-diagonal E_i)
+         [A_gl, A_gg]]      A_gg (p, p) dense, p small
+
+Everything here is linear in the number of stages: a block Cholesky of ``A_ll``
+(``BlockTridiagonal``), the Schur complement onto the globals (``Bordered``),
+the selected inverse (the blocks of ``A_ll^-1`` on its own pattern, by the
+block Takahashi recursion) and from it the exact leverage of every row
+(``diag(J A^-1 J^T)``), which the residual map needs for honest degrees of
+freedom.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.linalg import cho_solve, cholesky, solve_triangular
+
+from ..errors import SolverError
+
+
+@dataclass
+class BlockTridiagonal:
+    """An SPD matrix with stage blocks ``diag[i]`` (n_i, n_i) and ``lower[i]`` = block
+    (i+1, i) of shape (n_{i+1}, n_i). ``offsets`` (len(diag) + 1,) are the stages' first rows."""
+
+    diag: list[np.ndarray]
+    lower: list[np.ndarray]
+
+    def __post_init__(self) -> None:
+        sizes = [d.shape[0] for d in self.diag]
+        self.offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+        self._C: list[np.ndarray] | None = None
+        self._G: list[np.ndarray] | None = None
+
+    @property
+    def size(self) -> int:
+        return int(self.offsets[-1])
+
+    @classmethod
+    def from_sparse(cls, A: sp.spmatrix, offsets: np.ndarray) -> BlockTridiagonal:
+        """The stage blocks of a sparse symmetric ``A`` (entries outside them must be zero)."""
+        A = sp.csr_matrix(A)
+        n = len(offsets) - 1
+        diag = [A[offsets[i]:offsets[i + 1], offsets[i]:offsets[i + 1]].toarray() for i in range(n)]
+        lower = [A[offsets[i + 1]:offsets[i + 2], offsets[i]:offsets[i + 1]].toarray() for i in range(n - 1)]
+        return cls(diag, lower)
+
+    # ------------------------------------------------------------------ factor
+    def factor(self) -> None:
+        """Block Cholesky ``A = L L^T``: ``C_i`` lower-triangular diagonal blocks, ``G_i`` the
+        sub-diagonal blocks of ``L``. Raises ``SolverError`` when ``A`` is not positive definite."""
+        C, G = [], []
+        S = self.diag[0]
+        for i in range(len(self.diag)):
+            if S.shape[0]:
+                try:
+                    Ci = cholesky(S, lower=True)
+                except np.linalg.LinAlgError:
+                    raise SolverError("the nuisance parameters are not determined by the data "
+                                      f"(stage {i} of {len(self.diag)})") from None
+            else:
+                Ci = S
+            C.append(Ci)
+            if i + 1 < len(self.diag):
+                E = self.lower[i]
+                Gi = solve_triangular(Ci, E.T, lower=True).T if Ci.shape[0] else E[:, :0]
+                G.append(Gi)
+                S = self.diag[i + 1] - Gi @ Gi.T
+        self._C, self._G = C, G
+
+    def _factors(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        if self._C is None:
+            self.factor()
+        return self._C, self._G  # type: ignore[return-value]
+
+    def logdet(self) -> float:
+        C, _ = self._factors()
+        return float(sum(2 * np.log(np.diag(c)).sum() for c in C))
+
+    # ------------------------------------------------------------------ solve
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """``A^-1 b`` for ``b`` (N,) or (N, k)."""
+        C, G = self._factors()
+        o = self.offsets
+        vec = b.ndim == 1
+        y = np.array(b, dtype=float).reshape(len(b), -1)
+        for i, Ci in enumerate(C):  # forward: L y = b
+            if i:
+                y[o[i]:o[i + 1]] -= G[i - 1] @ y[o[i - 1]:o[i]]
+            if Ci.shape[0]:
+                y[o[i]:o[i + 1]] = solve_triangular(Ci, y[o[i]:o[i + 1]], lower=True)
+        for i in range(len(C) - 1, -1, -1):  # backward: L^T x = y
+            if i + 1 < len(C):
+                y[o[i]:o[i + 1]] -= G[i].T @ y[o[i + 1]:o[i + 2]]
+            if C[i].shape[0]:
+                y[o[i]:o[i + 1]] = solve_triangular(C[i], y[o[i]:o[i + 1]], lower=True, trans="T")
+        return y[:, 0] if vec else y
+
+    # ------------------------------------------------------------------ selected inverse
+    def selected_inverse(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """The blocks of ``Z = A^-1`` on the pattern of ``A``: ``Z_ii`` and ``Z_{i+1,i}``.
+
+        From ``L^T Z = L^-1`` (block Takahashi recursion, last stage first):
+        ``Z_{i,i+1} = -C_i^-T G_i^T Z_{i+1,i+1}`` and
+        ``Z_ii = C_i^-T (C_i^-1 - G_i^T Z_{i+1,i})``.
+        """
+        C, G = self._factors()
+        n = len(C)
+        Zd: list[np.ndarray] = [np.zeros((0, 0))] * n
+        Zl: list[np.ndarray] = [np.zeros((0, 0))] * max(n - 1, 0)
+        for i in range(n - 1, -1, -1):
+            Ci = C[i]
+            k = Ci.shape[0]
+            Cinv = solve_triangular(Ci, np.eye(k), lower=True) if k else np.zeros((0, 0))
+            if i == n - 1:
+                Zd[i] = Cinv.T @ Cinv
+                continue
+            Zu = -solve_triangular(Ci, G[i].T @ Zd[i + 1], lower=True, trans="T") if k else \
+                np.zeros((0, Zd[i + 1].shape[0]))  # Z_{i,i+1}
+            Zl[i] = Zu.T
+            Zd[i] = solve_triangular(Ci, Cinv - G[i].T @ Zu.T, lower=True, trans="T") if k else Cinv
+            Zd[i] = 0.5 * (Zd[i] + Zd[i].T)
+        return Zd, Zl
+
+    def selected_sparse(self) -> sp.csr_matrix:
+        """``selected_inverse`` as a sparse symmetric (N, N) matrix (zero outside the pattern)."""
+        Zd, Zl = self.selected_inverse()
+        o = self.offsets
+        rows, cols, vals = [], [], []
+
+        def put(block: np.ndarray, r0: int, c0: int) -> None:
+            if block.size:
+                r, c = np.indices(block.shape)
+                rows.append((r + r0).ravel())
+                cols.append((c + c0).ravel())
+                vals.append(block.ravel())
+
+        for i, z in enumerate(Zd):
+            put(z, o[i], o[i])
+        for i, z in enumerate(Zl):
+            put(z, o[i + 1], o[i])
+            put(z.T, o[i], o[i + 1])
+        if not rows:
+            return sp.csr_matrix((self.size, self.size))
+        return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                             shape=(self.size, self.size))
+
+
+@dataclass
+class Bordered:
+    """The normal equations of ``r(x_g, x_l)`` with Jacobians ``J_g`` (N, p) dense and ``J_l``
+    (N, q) sparse whose locals form the block-tridiagonal stages ``offsets``.
+
+    ``damping`` adds ``lambda diag(A)`` (Levenberg-Marquardt); 0 gives the plain normal
+    equations whose inverse is the covariance.
+    """
+
+    J_g: np.ndarray
+    J_l: sp.csr_matrix
+    offsets: np.ndarray
+    damping: float = 0.0
+
+    def __post_init__(self) -> None:
+        J_l = self.J_l
+        A_ll = (J_l.T @ J_l).tocsr()
+        self.A_lg = np.asarray(J_l.T @ self.J_g)
+        self.A_gg = self.J_g.T @ self.J_g
+        if self.damping:
+            A_ll = A_ll + sp.diags(self.damping * A_ll.diagonal())
+            self.A_gg = self.A_gg + np.diag(self.damping * np.diag(self.A_gg))
+        self.blocks = BlockTridiagonal.from_sparse(A_ll, self.offsets)
+        self.X = self.blocks.solve(self.A_lg) if self.A_lg.size else np.zeros((self.blocks.size, 0))
+        S = self.A_gg - self.A_lg.T @ self.X
+        self.S = 0.5 * (S + S.T)
+        try:
+            self._S_chol = cholesky(self.S, lower=True) if len(self.S) else self.S
+        except np.linalg.LinAlgError:
+            raise SolverError("the global parameters are not determined by the data") from None
+
+    def solve(self, g_g: np.ndarray, g_l: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(x_g, x_l)`` solving ``A [x_g; x_l] = [g_g; g_l]``."""
+        y = self.blocks.solve(g_l)
+        x_g = cho_solve((self._S_chol, True), g_g - self.A_lg.T @ y) if len(self.S) else np.zeros(0)
+        return x_g, y - self.X @ x_g
+
+    def step(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The Gauss-Newton (or damped) step ``-A^-1 J^T r`` as ``(dx_g, dx_l)``."""
+        x_g, x_l = self.solve(-(self.J_g.T @ r), -np.asarray(self.J_l.T @ r))
+        return x_g, x_l
+
+    def global_covariance(self) -> np.ndarray:
+        """(p, p) ``(A^-1)_gg = S^-1``: the globals' covariance with every local marginalised."""
+        return cho_solve((self._S_chol, True), np.eye(len(self.S))) if len(self.S) else self.S
+
+    def leverage(self) -> np.ndarray:
+        """(N,) ``diag(J A^-1 J^T)``, exact: ``a^T A_ll^-1 a + (g - X^T a)^T S^-1 (g - X^T a)``
+        per row, the first term from the selected inverse (rows touch two stages at most)."""
+        Z = self.blocks.selected_sparse()
+        J_l = self.J_l
+        local = np.asarray((J_l @ Z).multiply(J_l).sum(axis=1)).ravel()
+        Gt = self.J_g - np.asarray(J_l @ self.X)
+        if not len(self.S):
+            return local
+        W = solve_triangular(self._S_chol, Gt.T, lower=True)
+        return local + np.einsum("ij,ij->j", W, W)
+
+
+def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np.ndarray,
+                        max_iter: int = 30, tol: float = 1e-10):
+    """Levenberg-Marquardt on ``residuals(x_g, x_l) -> (r, J_g, J_l)``.
+
+    Returns ``(x_g, x_l, r, J_g, J_l, iterations, converged)`` at the optimum. Converged when
+    the relative decrease of the cost falls below ``tol`` after a successful undamped-ish step.
+    """
+    r, J_g, J_l = residuals(x_g, x_l)
+    cost = float(r @ r)
+    lam = 1e-6
+    converged = False
+    it = 0
+    for it in range(1, max_iter + 1):
+        system = Bordered(J_g, J_l, offsets, damping=lam)
+        d_g, d_l = system.step(r)
+        while True:
+            cand_g, cand_l = x_g + d_g, x_l + d_l
+            r2, J_g2, J_l2 = residuals(cand_g, cand_l)
+            cost2 = float(r2 @ r2)
+            if np.isfinite(cost2) and cost2 <= cost:
+                break
+            lam *= 10.0
+            if lam > 1e8:
+                return x_g, x_l, r, J_g, J_l, it, converged
+            system = Bordered(J_g, J_l, offsets, damping=lam)
+            d_g, d_l = system.step(r)
+        decrease = (cost - cost2) / max(cost, 1e-300)
+        x_g, x_l, r, J_g, J_l, cost = cand_g, cand_l, r2, J_g2, J_l2, cost2
+        lam = max(lam / 10.0, 1e-12)
+        if decrease < tol:
+            converged = True
+            break
+    return x_g, x_l, r, J_g, J_l, it, converged
