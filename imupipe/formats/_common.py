@@ -184,8 +184,11 @@ def rotation_deg(U: np.ndarray) -> float:
 
 
 def num(x: float) -> str:
-    """A float written so that parsing it gives the same double back."""
-    return repr(float(x))
+    """A float written so that parsing it gives the same double back, and that YAML 1.1
+    (PyYAML, which Kalibr uses) reads as a float: ``3e-06`` would be a string there."""
+    text = repr(float(x))
+    mantissa, e, exponent = text.partition("e")
+    return f"{mantissa}.0e{exponent}" if e and "." not in mantissa else text
 
 
 def header(fmt: str, target: str, source: Source, prefix: str = "# ") -> list[str]:

@@ -48,19 +48,24 @@ def parse_formats(text: str | Sequence[str] | None, registry: Registry) -> tuple
 
 def export_formats(formats: Sequence[str], results: Mapping[str, pa.Table],
                    context: Mapping[str, Any], run_dir: Path, registry: Registry) -> list[Path]:
-    """Clear ``run_dir/export`` and write every format there; an ``ExportError`` names the format."""
+    """Clear ``run_dir/export`` and write every format there, or (on an error) none."""
     out = Path(run_dir) / EXPORT_DIR
-    if out.is_dir() and not out.is_symlink():
-        shutil.rmtree(out)
+    _clear(out)
     written: list[Path] = []
-    for name in formats:
-        try:
+    try:
+        for name in formats:
             written += registry.get("exporters", name).export(results, context, out)
-        except ExportError:
-            raise
-        except ImupipeError as exc:
+    except BaseException as exc:
+        _clear(out)  # all the formats asked for, or none
+        if isinstance(exc, ImupipeError) and not isinstance(exc, ExportError):
             raise ExportError(f"{name} export: {exc}") from None
+        raise
     return written
+
+
+def _clear(folder: Path) -> None:
+    if folder.is_dir() and not folder.is_symlink():
+        shutil.rmtree(folder)
 
 
 def noise_tables(tables: Mapping[str, pa.Table]) -> dict[str, pa.Table]:
