@@ -39,6 +39,7 @@ log = logging.getLogger("imupipe.pipeline")
 CACHE_DIR = ".cache"
 MANIFEST = "run.json"
 CALIBRATION = "calibration.json"
+FOLDER_SESSIONS = ("session.toml", "metadata.yaml")  # files that stand for their whole folder
 
 
 @dataclass(frozen=True)
@@ -88,7 +89,7 @@ def session_ids(sessions: Sequence[Path]) -> list[str]:
     """A folder name per session: the stem (a manifest's folder name), unique within the list."""
 
     def stem(p: Path) -> str:
-        return p.parent.resolve().name if p.name.lower() == "session.toml" else p.stem
+        return p.parent.resolve().name if p.name.lower() in FOLDER_SESSIONS else p.stem
 
     stems = [stem(Path(s)) for s in sessions]
     out = []
@@ -281,9 +282,10 @@ def expand_inputs(inputs: Sequence[str], registry: Registry, out: Path | None = 
 def _walk(folder: Path, readers: list, skip: Path | None) -> list[Path]:
     if skip is not None and folder.resolve() == skip:
         return []
-    manifest = folder / "session.toml"
-    if manifest.is_file():
-        return [manifest]
+    for name in FOLDER_SESSIONS:  # a folder that is one session: a manifest, a ROS 2 bag
+        manifest = folder / name
+        if manifest.is_file():
+            return [manifest]
     out = []
     for p in sorted(folder.iterdir()):
         if p.name.startswith("."):
