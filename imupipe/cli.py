@@ -26,6 +26,11 @@ def _parser() -> argparse.ArgumentParser:
     def common(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--quiet", action="store_true", help="no progress display")
 
+    def exports(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--export", action="append", default=[], metavar="FORMAT[,...]",
+                        help="also write the calibration for other software, in DIR/<session>/"
+                             "export/: kalibr, imu_tk, px4, ardupilot, imu_calib")
+
     sp = sub.add_parser("ingest", help="read a session into canonical Arrow tables")
     sp.add_argument("session", type=Path)
     sp.add_argument("--out", type=Path, default=None, help="output directory (default: ./<session-stem>.tables)")
@@ -35,6 +40,7 @@ def _parser() -> argparse.ArgumentParser:
     sp.add_argument("sessions", type=Path, nargs="+", metavar="SESSION")
     sp.add_argument("--pipeline", type=Path, default=None, help="pipeline TOML (default: the built-in one)")
     sp.add_argument("--out", type=Path, default=Path("imupipe-out"))
+    exports(sp)
     common(sp)
 
     sp = sub.add_parser("batch", help="calibrate every session under directories or globs")
@@ -43,6 +49,7 @@ def _parser() -> argparse.ArgumentParser:
     sp.add_argument("--out", type=Path, default=Path("imupipe-out"))
     sp.add_argument("--executor", default="local", help="local (process pool) or dask (extra imupipe[dask])")
     sp.add_argument("--jobs", type=int, default=None, help="parallel jobs (default: number of cores)")
+    exports(sp)
     common(sp)
 
     sp = sub.add_parser("status", help="say which stages of a pipeline are stale and why")
@@ -63,6 +70,12 @@ def _parser() -> argparse.ArgumentParser:
                     help="override the environment, e.g. --env gravity_m_s2=9.80665 --env dip_deg=65")
     sp.add_argument("--seed", type=int, default=0)
     sp.add_argument("--out", type=Path, default=None, help="output .mcap or .csv (default: <protocol>.mcap)")
+    common(sp)
+
+    sp = sub.add_parser("export", help="write a finished run's calibration for other software")
+    sp.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="DIR/<session> of `imupipe run`")
+    sp.add_argument("--format", action="append", required=True, metavar="FORMAT[,...]",
+                    help="kalibr, imu_tk, px4, ardupilot, imu_calib")
     common(sp)
 
     common(sub.add_parser("plugins", help="list every plugin and what it provides"))
@@ -126,7 +139,8 @@ def _cmd_plugins(args) -> int:
 def _cmd_run(args) -> int:
     from .pipeline.api import run_sessions
 
-    for path in run_sessions(args.sessions, pipeline=args.pipeline, out=args.out, quiet=args.quiet):
+    for path in run_sessions(args.sessions, pipeline=args.pipeline, out=args.out, quiet=args.quiet,
+                             export=args.export):
         print(path)
     return 0
 
@@ -135,7 +149,7 @@ def _cmd_batch(args) -> int:
     from .pipeline.api import batch
 
     failures = batch(args.inputs, pipeline=args.pipeline, out=args.out, executor=args.executor,
-                     jobs=args.jobs, quiet=args.quiet)
+                     jobs=args.jobs, quiet=args.quiet, export=args.export)
     return 2 if failures else 0
 
 
@@ -143,6 +157,16 @@ def _cmd_status(args) -> int:
     from .pipeline.api import status
 
     print(status(args.sessions, pipeline=args.pipeline, out=args.out))
+    return 0
+
+
+def _cmd_export(args) -> int:
+    from .pipeline.export import export_run_dir, parse_formats
+    from .plugins import make_registry
+
+    registry = make_registry()
+    for path in export_run_dir(args.run_dir, parse_formats(args.format, registry), registry):
+        print(path)
     return 0
 
 
@@ -160,7 +184,7 @@ def _cmd_simulate(args) -> int:
 
 
 COMMANDS = {"ingest": _cmd_ingest, "run": _cmd_run, "batch": _cmd_batch, "status": _cmd_status,
-            "simulate": _cmd_simulate, "plugins": _cmd_plugins}
+            "simulate": _cmd_simulate, "plugins": _cmd_plugins, "export": _cmd_export}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -103,3 +103,31 @@ def write_recording(recording: Recording, out_dir: Path) -> list[Path]:
 def safe_name(name: str) -> str:
     """A device or topic name as a file-system name (``/imu0/data`` -> ``imu0_data``)."""
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "imu"
+
+
+FACT_KEYS = ("imupipe.topic", "imupipe.device_id", "imupipe.frame_convention")
+
+
+def stream_facts(streams: dict[str, pa.Table]) -> dict[str, dict]:
+    """Per stream, what exporters need beyond the calibration (JSON-ready).
+
+    ``samples``, ``rate_hz`` (1 / median sample interval), the reader's metadata
+    named in ``FACT_KEYS`` without the ``imupipe.`` prefix (``topic``,
+    ``device_id``, ``frame_convention``), and for ``temperature`` its
+    ``min_C``/``max_C``.
+    """
+    out: dict[str, dict] = {}
+    for name, table in sorted(streams.items()):
+        t = table.column("t_ns").to_numpy()
+        facts: dict = {"samples": len(t)}
+        if len(t) > 1:
+            facts["rate_hz"] = float(1e9 / np.median(np.diff(t)))
+        meta = table.schema.metadata or {}
+        for key in FACT_KEYS:
+            if key.encode() in meta:
+                facts[key.split(".", 1)[1]] = meta[key.encode()].decode()
+        if name == "temperature" and len(t):
+            values = table.column("temperature").to_numpy()
+            facts["min_C"], facts["max_C"] = float(values.min()), float(values.max())
+        out[name] = facts
+    return out

@@ -29,7 +29,8 @@ from ..plugins import Registry, make_registry
 from ..progress import progress
 from .cache import Cache, claimant, read_manifest, reader_identity, session_digest
 from .config import default_pipeline_path, load_pipeline
-from .dag import Pipeline
+from .dag import Pipeline, Ref
+from .export import EXPORT_DIR, ExportError, export_formats, noise_tables, parse_formats
 from .runner import SessionRun, run_session
 from .status import render, stage_states
 
@@ -38,6 +39,7 @@ log = logging.getLogger("imupipe.pipeline")
 CACHE_DIR = ".cache"
 MANIFEST = "run.json"
 CALIBRATION = "calibration.json"
+FOLDER_SESSIONS = ("session.toml", "metadata.yaml")  # files that stand for their whole folder
 
 
 @dataclass(frozen=True)
@@ -67,6 +69,7 @@ class Job:
     pipeline: str
     out: str
     registry: RegistrySpec = field(default_factory=RegistrySpec)
+    export: tuple[str, ...] = ()  # format exporters (``--export``)
 
     def failed(self, reason: str) -> JobResult:
         return JobResult(self.session, "failed", reason)
@@ -86,7 +89,7 @@ def session_ids(sessions: Sequence[Path]) -> list[str]:
     """A folder name per session: the stem (a manifest's folder name), unique within the list."""
 
     def stem(p: Path) -> str:
-        return p.parent.resolve().name if p.name.lower() == "session.toml" else p.stem
+        return p.parent.resolve().name if p.name.lower() in FOLDER_SESSIONS else p.stem
 
     stems = [stem(Path(s)) for s in sessions]
     out = []
@@ -98,7 +101,8 @@ def session_ids(sessions: Sequence[Path]) -> list[str]:
 
 
 def process_session(
-    session: Path, session_id: str, pipeline: Pipeline, registry: Registry, out: Path, on_stage=None
+    session: Path, session_id: str, pipeline: Pipeline, registry: Registry, out: Path, on_stage=None,
+    export: Sequence[str] = (),
 ) -> Path | None:
     """Run ``pipeline`` on one session and export; return the calibration.json written (if any).
 
@@ -111,7 +115,9 @@ def process_session(
         run = run_session(
             session, pipeline, registry, Cache(Path(out) / CACHE_DIR), run_dir / MANIFEST, on_stage
         )
-        return _export(run, registry, run_dir)
+        return _export(run, registry, run_dir, export)
+    except ExportError:
+        raise  # the calibration stands; only a requested format could not be written
     except BaseException:
         for name in _export_names(pipeline, registry):
             _remove(run_dir / name)
@@ -120,7 +126,7 @@ def process_session(
 
 def _export_names(pipeline: Pipeline, registry: Registry) -> list[str]:
     """Names under the session's folder that the pipeline's exporters write."""
-    names = []
+    names = [EXPORT_DIR]
     if pipeline.export_calibration:
         names.append(CALIBRATION)
     if pipeline.export_reports and "report" in registry.names("exporters"):
@@ -135,7 +141,8 @@ def _remove(path: Path) -> None:
         path.unlink(missing_ok=True)
 
 
-def _export(run: SessionRun, registry: Registry, run_dir: Path) -> Path | None:
+def _export(run: SessionRun, registry: Registry, run_dir: Path, formats: Sequence[str] = ()
+            ) -> Path | None:
     pipeline = run.pipeline
     context = {
         "session": str(run.session),
@@ -145,10 +152,10 @@ def _export(run: SessionRun, registry: Registry, run_dir: Path) -> Path | None:
         "raw_units": run.raw_units,  # stream -> unit of raw values not in SI ("counts")
     }
     written = None
+    calibration = {str(r): t for r in pipeline.export_calibration if (t := run.table(r)) is not None}
     if pipeline.export_calibration:
-        tables = {str(r): t for r in pipeline.export_calibration if (t := run.table(r)) is not None}
         exporter = registry.get("exporters", "calibration_json")
-        written = exporter.export(tables, context, run_dir)[0]
+        written = exporter.export(calibration, context, run_dir)[0]
     if pipeline.export_reports:
         if "report" in registry.names("exporters"):
             tables = {str(r): t for r in pipeline.export_reports if (t := run.table(r)) is not None}
@@ -158,6 +165,14 @@ def _export(run: SessionRun, registry: Registry, run_dir: Path) -> Path | None:
                 warnings.warn(f"{run.session}: no report written: {exc}", stacklevel=2)
         else:
             log.info("no 'report' exporter is registered; skipping the reports of %s", run.session)
+    # export/ always matches calibration.json: cleared on every run, then the formats asked for
+    results = {}
+    if formats:
+        context = {**context, "stream_facts": run.stream_facts, "device": pipeline.device}
+        noise = {f"{k}.{p}": run.table(Ref(k, p)) for k, node in pipeline.nodes.items()
+                 for p, sid in node.stage.outputs.items() if sid == "noise"}
+        results = {**calibration, **noise_tables({k: t for k, t in noise.items() if t is not None})}
+    export_formats(formats, results, context, run_dir, registry)
     return written
 
 
@@ -171,6 +186,7 @@ def run_sessions(
     quiet: bool = False,
     *,
     registry: Registry | None = None,
+    export: Sequence[str] = (),
 ) -> list[Path]:
     """``imupipe run``: every session in turn; a failing session does not stop the others.
 
@@ -179,6 +195,7 @@ def run_sessions(
     """
     registry = registry or make_registry()
     spec = load_pipeline(pipeline, registry)  # bad config: fail before reading any data
+    export = parse_formats(export, registry)
     # the same file named twice is one session
     sessions = list({Path(s).resolve(): Path(s) for s in sessions}.values())
     written, failures = [], []
@@ -195,6 +212,7 @@ def run_sessions(
                     registry,
                     Path(out),
                     on_stage=lambda *_: p.advance(stage_task),
+                    export=export,
                 )
             except ImupipeError as exc:
                 failures.append(exc)
@@ -220,7 +238,8 @@ def run_job(job: Job) -> JobResult:
     try:
         registry = job.registry.make()
         spec = load_pipeline(Path(job.pipeline), registry)
-        path = process_session(Path(job.session), job.session_id, spec, registry, Path(job.out))
+        path = process_session(Path(job.session), job.session_id, spec, registry, Path(job.out),
+                               export=job.export)
         return JobResult(job.session, "ok", str(path) if path else "(no calibration exported)")
     except ImupipeError as exc:
         return job.failed(str(exc))
@@ -263,9 +282,10 @@ def expand_inputs(inputs: Sequence[str], registry: Registry, out: Path | None = 
 def _walk(folder: Path, readers: list, skip: Path | None) -> list[Path]:
     if skip is not None and folder.resolve() == skip:
         return []
-    manifest = folder / "session.toml"
-    if manifest.is_file():
-        return [manifest]
+    for name in FOLDER_SESSIONS:  # a folder that is one session: a manifest, a ROS 2 bag
+        manifest = folder / name
+        if manifest.is_file():
+            return [manifest]
     out = []
     for p in sorted(folder.iterdir()):
         if p.name.startswith("."):
@@ -296,6 +316,7 @@ def batch(
     quiet: bool = False,
     *,
     plugins: RegistrySpec | None = None,
+    export: Sequence[str] = (),
 ) -> list[JobResult]:
     """``imupipe batch``: each session an independent job; returns the failures.
 
@@ -304,10 +325,11 @@ def batch(
     spec = plugins or DEFAULT_SPEC
     registry = spec.make()
     pipeline_obj = load_pipeline(pipeline, registry)  # bad config: fail before any job starts
+    export = parse_formats(export, registry)
     runner = registry.get("executors", executor)
     sessions = expand_inputs(inputs, registry, out)
     jobs_list = [
-        Job(str(s), sid, str(pipeline_obj.path.resolve()), str(Path(out).resolve()), spec)
+        Job(str(s), sid, str(pipeline_obj.path.resolve()), str(Path(out).resolve()), spec, export)
         for s, sid in zip(sessions, session_ids(sessions), strict=True)
     ]
     with progress(quiet) as p:

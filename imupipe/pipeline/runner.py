@@ -27,7 +27,7 @@ import pyarrow as pa
 
 from .. import __version__, schemas
 from ..errors import ImupipeError, SchemaError
-from ..ingest import read_recording
+from ..ingest import read_recording, stream_facts
 from ..plugins import Registry
 from .cache import (
     Cache,
@@ -98,6 +98,11 @@ class SessionRun:
         """Stream -> unit of its raw values where a reader left them unconverted ("counts")."""
         return self.source.raw_units() if self.source is not None else {}
 
+    @property
+    def stream_facts(self) -> dict[str, dict]:
+        """Stream -> what exporters need of it (``ingest.stream_facts``): rate, topic, ..."""
+        return self.source.facts() if self.source is not None else {}
+
 
 RAW_UNIT_KEY = b"imupipe.raw_unit"  # table metadata: the values are in this unit, not SI
 
@@ -113,6 +118,7 @@ class _Source:
         self._streams: dict[str, pa.Table] | None = None
         self._names: list[str] | None = None
         self._units: dict[str, str] | None = None
+        self._facts: dict[str, dict] | None = None
         if (
             previous
             and previous.get("session_digest") == digest
@@ -123,6 +129,7 @@ class _Source:
             # known from the last run of the same bytes through the same reader
             self._names = list(previous["streams"])
             self._units = previous.get("raw_units")
+            self._facts = previous.get("stream_facts")
 
     def _read(self) -> dict[str, pa.Table]:
         if self._streams is None:
@@ -134,6 +141,7 @@ class _Source:
                 for name, table in sorted(self._streams.items())
                 if (unit := (table.schema.metadata or {}).get(RAW_UNIT_KEY))
             }
+            self._facts = stream_facts(self._streams)
         return self._streams
 
     def names(self) -> list[str]:
@@ -145,6 +153,11 @@ class _Source:
         if self._units is None:
             self._read()
         return dict(self._units or {})
+
+    def facts(self) -> dict[str, dict]:
+        if self._facts is None:
+            self._read()
+        return dict(self._facts or {})
 
     def table(self, stream: str) -> pa.Table:
         return self._read()[stream]
@@ -191,6 +204,7 @@ def run_session(
                 "reader": source.reader if source else None,
                 "streams": source._names if source else None,
                 "raw_units": source._units if source else None,
+                "stream_facts": source._facts if source else None,
                 "pipeline": {"name": pipeline.name, "path": str(Path(pipeline.path).resolve())},
                 "imupipe_version": __version__,
                 "error": error,

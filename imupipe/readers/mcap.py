@@ -52,6 +52,8 @@ RECOVER = ("re-record it, or salvage what it holds with the mcap CLI: "
 
 LOOKAHEAD = 2  # batches read and decompressed ahead, in a thread, while one is decoded
 BATCH_BYTES = 4 << 20  # uncompressed records per batch: amortises numpy's per-call cost
+# REP-103: ROS body frames are x forward, y left, z up; exporters to FRD targets use it
+FRAME_CONVENTION = "FLU"
 COLUMNS = {"accel": ("x", "y", "z"), "gyro": ("x", "y", "z"), "mag": ("x", "y", "z"),
            "temperature": ("temperature",)}
 
@@ -473,6 +475,6 @@ def _recording(path: Path, pieces: Pieces, other: set[str]) -> Recording:
             columns = {"t_ns": sink.t[:sink.n]}
             for j, name in enumerate(COLUMNS[stream]):
                 columns[name] = sink.v[j, :sink.n]
-            devices[names[key]][stream] = schemas.stamp(pa.table(columns), stream,
-                                                        extra={"imupipe.topic": key[0]})
+            devices[names[key]][stream] = schemas.stamp(pa.table(columns), stream, extra={
+                "imupipe.topic": key[0], "imupipe.frame_convention": FRAME_CONVENTION})
     return Recording(source=str(path), devices=dict(devices))

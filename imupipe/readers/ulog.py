@@ -14,7 +14,13 @@ Devices:
 - ``mag<j>``: instance ``j`` of ``sensor_mag`` [gauss -> T] (a separate chip),
   with its temperature when the driver reports one.
 
-Time stamps are PX4 boot time in microseconds.
+Time stamps are PX4 boot time in microseconds. Frames: PX4's drivers publish
+``sensor_accel``/``sensor_gyro``/``sensor_mag`` in the board's FRD axes (x
+forward, y right, z down) before any calibration, the frame in which PX4 applies
+``CAL_*`` and ``TC_*`` parameters (``src/lib/sensor_calibration``);
+``sensor_combined`` is already corrected by them and rotated to the body frame.
+Tables carry ``imupipe.frame_convention = FRD`` and, per instance,
+``imupipe.device_id`` (what PX4 matches ``CAL_ACCn_ID`` against).
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ from .csv import canonical_table
 
 MAGIC = b"ULog\x01\x12\x35"
 GAUSS = 1e-4  # T per gauss
+FRD = {"imupipe.frame_convention": "FRD"}
 RELATIVE_INVALID = 0x7FFFFFFF  # PX4's RELATIVE_TIMESTAMP_INVALID
 TOPICS = ["sensor_combined", "sensor_accel", "sensor_gyro", "sensor_mag"]
 
@@ -49,9 +56,9 @@ def _combined(data: dict) -> dict:
     ok = rel != RELATIVE_INVALID
     streams["accel"] = canonical_table(
         "accel", _ns(t[ok] + rel[ok]),
-        [np.asarray(data[f"accelerometer_m_s2[{i}]"], np.float64)[ok] for i in range(3)])
+        [np.asarray(data[f"accelerometer_m_s2[{i}]"], np.float64)[ok] for i in range(3)], FRD)
     streams["gyro"] = canonical_table(
-        "gyro", _ns(t), [np.asarray(data[f"gyro_rad[{i}]"], np.float64) for i in range(3)])
+        "gyro", _ns(t), [np.asarray(data[f"gyro_rad[{i}]"], np.float64) for i in range(3)], FRD)
     if "magnetometer_ga[0]" in data:
         rel = np.asarray(data["magnetometer_timestamp_relative"], np.int64)
         tm = t + rel
@@ -61,8 +68,15 @@ def _combined(data: dict) -> dict:
             streams["mag"] = canonical_table(
                 "mag", _ns(tm[new]),
                 [np.asarray(data[f"magnetometer_ga[{i}]"], np.float64)[new] * GAUSS
-                 for i in range(3)])
+                 for i in range(3)], FRD)
     return streams
+
+
+def _meta(data: dict) -> dict[str, str]:
+    """Frame and, when logged, the PX4 device id of one instance."""
+    if "device_id" not in data:
+        return FRD
+    return {**FRD, "imupipe.device_id": str(int(np.asarray(data["device_id"])[0]))}
 
 
 def _instance_time(data: dict) -> np.ndarray:
@@ -94,23 +108,28 @@ class UlogReader:
         gyros = {int(np.asarray(g["device_id"])[0]): g
                  for g in topics.get("sensor_gyro", {}).values() if "device_id" in g}
         for i, acc in sorted(topics.get("sensor_accel", {}).items()):
-            streams = {"accel": canonical_table("accel", _instance_time(acc), _xyz(acc, ""))}
+            streams = {"accel": canonical_table("accel", _instance_time(acc), _xyz(acc, ""),
+                                                _meta(acc))}
             if "temperature" in acc and np.isfinite(acc["temperature"]).all():
                 streams["temperature"] = canonical_table(
-                    "temperature", _instance_time(acc), [np.asarray(acc["temperature"], float)])
+                    "temperature", _instance_time(acc), [np.asarray(acc["temperature"], float)],
+                    _meta(acc))
             gyro = gyros.pop(int(np.asarray(acc["device_id"])[0]), None) if "device_id" in acc \
                 else None
             if gyro is not None:
-                streams["gyro"] = canonical_table("gyro", _instance_time(gyro), _xyz(gyro, ""))
+                streams["gyro"] = canonical_table("gyro", _instance_time(gyro), _xyz(gyro, ""),
+                                                  _meta(gyro))
             devices[f"imu{i}"] = streams
         for k, gyro in enumerate(gyros.values()):  # gyros without an accel on the same chip
             devices[f"gyro{k}"] = {"gyro": canonical_table("gyro", _instance_time(gyro),
-                                                           _xyz(gyro, ""))}
+                                                           _xyz(gyro, ""), _meta(gyro))}
         for j, mag in sorted(topics.get("sensor_mag", {}).items()):
-            streams = {"mag": canonical_table("mag", _instance_time(mag), _xyz(mag, "", GAUSS))}
+            streams = {"mag": canonical_table("mag", _instance_time(mag), _xyz(mag, "", GAUSS),
+                                              _meta(mag))}
             if "temperature" in mag and np.isfinite(mag["temperature"]).all():
                 streams["temperature"] = canonical_table(
-                    "temperature", _instance_time(mag), [np.asarray(mag["temperature"], float)])
+                    "temperature", _instance_time(mag), [np.asarray(mag["temperature"], float)],
+                    _meta(mag))
             devices[f"mag{j}"] = streams
         if not devices:
             raise ReaderError(f"{path}: no sensor_combined, sensor_accel, sensor_gyro or "
