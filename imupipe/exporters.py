@@ -74,7 +74,40 @@ def with_raw_units(doc: dict[str, Any], raw_units: Mapping[str, str]) -> dict[st
     return doc
 
 
-COMPONENTS: list = [CalibrationJson()]
+class ResidualMapFiles:
+    """``out_dir/residual_map.json`` and ``out_dir/residuals.parquet`` (``spec/contracts.md``): the
+    map of where the model fails and the whitened per-sample residual table it was built from,
+    from the tables of schemas ``residual_map`` and ``sample_residuals`` among the results."""
+
+    name = "residual_map"
+    writes = ("residual_map.json", "residuals.parquet")
+
+    def export(
+        self, results: Mapping[str, pa.Table], context: Mapping[str, Any], out_dir: Path
+    ) -> list[Path]:
+        from . import schemas
+        from .io import atomic_path
+
+        written = []
+        for table in results.values():
+            sid = schemas.schema_of(table)
+            if sid == "residual_map":
+                doc = json.loads(table.schema.metadata[b"imupipe.residual_map"])
+                doc["session"] = str(context.get("session", doc.get("session", "")))
+                path = Path(out_dir) / "residual_map.json"
+                write_text(path, json.dumps(doc, indent=1) + "\n")
+                written.append(path)
+            elif sid == "sample_residuals":
+                import pyarrow.parquet as pq
+
+                path = Path(out_dir) / "residuals.parquet"
+                with atomic_path(path) as tmp:
+                    pq.write_table(table, tmp, compression="zstd")
+                written.append(path)
+        return written
+
+
+COMPONENTS: list = [CalibrationJson(), ResidualMapFiles()]
 
 
 @hookimpl

@@ -129,8 +129,10 @@ def _export_names(pipeline: Pipeline, registry: Registry) -> list[str]:
     names = [EXPORT_DIR]
     if pipeline.export_calibration:
         names.append(CALIBRATION)
-    if pipeline.export_reports and "report" in registry.names("exporters"):
-        names += getattr(registry.get("exporters", "report"), "writes", ())
+    if pipeline.export_reports:
+        for name in ("report", "residual_map"):
+            if name in registry.names("exporters"):
+                names += getattr(registry.get("exporters", name), "writes", ())
     return names
 
 
@@ -157,8 +159,10 @@ def _export(run: SessionRun, registry: Registry, run_dir: Path, formats: Sequenc
         exporter = registry.get("exporters", "calibration_json")
         written = exporter.export(calibration, context, run_dir)[0]
     if pipeline.export_reports:
+        tables = {str(r): t for r in pipeline.export_reports if (t := run.table(r)) is not None}
+        if "residual_map" in registry.names("exporters"):  # the map's files need no extra
+            registry.get("exporters", "residual_map").export(tables, context, run_dir)
         if "report" in registry.names("exporters"):
-            tables = {str(r): t for r in pipeline.export_reports if (t := run.table(r)) is not None}
             try:
                 registry.get("exporters", "report").export(tables, context, run_dir)
             except MissingExtraError as exc:  # the calibration stands; say how to get reports

@@ -21,6 +21,7 @@ import pyarrow as pa
 from .. import schemas
 from ..errors import require
 from ..io import atomic_path, write_text
+from . import residual_figures
 
 
 def _col(table: pa.Table, name: str) -> np.ndarray:
@@ -194,6 +195,18 @@ class ReportExporter:
                     ax.set_ylabel("turn-angle error, deg")
                     ax.legend()
                 figure("turn_errors", "turn-angle error before/after (paper Fig. 5)", draw)
+            elif sid == "residual_map":
+                doc = json.loads(t.schema.metadata[b"imupipe.residual_map"])
+                lines += residual_figures.map_lines(doc)
+                for sensor in ("accel", "gyro"):
+                    figure(f"residual_map_{sensor}", f"{sensor}: chi2/dof per cell (* flagged)",
+                           lambda fig, doc=doc, sensor=sensor: residual_figures.draw_heat_map(fig, doc, sensor),
+                           panels=True)
+                samples = next((x for x in results.values() if schemas.schema_of(x) == "sample_residuals"), None)
+                if samples is not None:
+                    figure("residuals_in_time", "whitened residuals along the session",
+                           lambda fig, s=samples, doc=doc: residual_figures.draw_time_series(fig, s, doc),
+                           panels=True)
             elif sid == "rests" and "accel_mean" in t.column_names:
                 u = _col(t, "accel_mean")
                 u = u / np.linalg.norm(u, axis=1, keepdims=True)

@@ -78,8 +78,9 @@ class JointObservations:
     """What ``refine_joint`` hands to a ``joint`` solver.
 
     ``rests``/``turns`` as segmented (raw, sensor axes, SI); ``gravity`` the
-    local magnitude m/s^2; ``accel``/``gyro`` the starting calibrations (their
-    temperature coefficients ``k`` are kept and applied, not refined).
+    local magnitude m/s^2; ``accel``/``gyro`` the starting calibrations;
+    ``temperature`` the session's temperature stream (seconds on the rests' clock,
+    de-quantised: ``imupipe.temperature``), else the rests' own mean temperatures.
     """
 
     rests: Rests
@@ -87,6 +88,7 @@ class JointObservations:
     gravity: float
     accel: TriadCalibration
     gyro: TriadCalibration
+    temperature: tuple[np.ndarray, np.ndarray] | None = None  # (t s, T degC) de-quantised
 
 
 @dataclass(frozen=True)
@@ -252,7 +254,7 @@ class JointML:
             "accel_bias_walk": {"q": q_a.tolist(), "q_unit": "(m/s^2)^2/s per axis",
                                 "sigma_rw": np.sqrt(q_a).tolist(), "sigma_rw_unit": "m/s^2/sqrt(s)",
                                 "estimated": params.accel_bias_rw is None},
-            "k_prior_entries": len(model.k_prior),
+            "k_prior_entries": len(model.k_prior), "gravity_m_s2": float(obs.gravity),
             "turn_angle_deg_max": float(np.degrees(rotation_angle(R)).max()) if len(R) else 0.0,
             "rests": len(obs.rests), "turns": len(turns), "turns_saturated": len(obs.turns) - len(turns),
             "fitted_temperature_coefficients": fit_k,
@@ -289,7 +291,8 @@ def joint_model(obs: JointObservations, params: JointMLParams):
     q_a = accel_walk_intensity(obs.rests, obs.accel, obs.gravity, fit_k, params.accel_bias_rw)
     noise = Noise.from_rests(obs.rests, q_a, q_g)
     start = Start(S0, obs.accel.b0, M_g0, obs.gyro.b0, obs.accel.k, obs.gyro.k, sigma_k)
-    return JointModel(obs.rests, turns, obs.gravity, start, noise, fit_k=fit_k), Q, (q_a, q_g, scatter)
+    model = JointModel(obs.rests, turns, obs.gravity, start, noise, fit_k=fit_k, temperature=obs.temperature)
+    return model, Q, (q_a, q_g, scatter)
 
 
 def covariance_at_start(obs: JointObservations, params: JointMLParams) -> np.ndarray:

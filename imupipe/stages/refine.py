@@ -28,6 +28,7 @@ from ..models import Calibration, TriadCalibration, triads_to_table
 from ..observations import Rests, Turns
 from ..solvers.joint_ml import JointFit, JointObservations
 from ..rotations import rotation_angle
+from ..temperature import smoothed
 from ._calib_common import concat_residuals, noise_details, residual_table
 
 STANDARD_GRAVITY = 9.80665
@@ -172,12 +173,21 @@ def _direction_cov(rests: Rests, u: np.ndarray, P: dict, g: float) -> np.ndarray
     return A @ rests.cov_of_mean("accel") @ np.swapaxes(A, 1, 2)
 
 
+def temperature_stream(table: pa.Table | None, t0_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(t s since t0_ns, T degC de-quantised)`` of a ``temperature`` table, or None."""
+    if table is None or not table.num_rows:
+        return None
+    t = (table.column("t_ns").to_numpy() - t0_ns) * 1e-9
+    return t, smoothed(t, table.column("temperature").to_numpy().astype(float))
+
+
 def refine_joint(inputs: Mapping[str, pa.Table], params: RefineParams,
                  solver: BoundSolver | None) -> dict[str, pa.Table]:
     accel, gyro = start_triads([inputs["accel_calibration"], inputs["gyro_calibration"]])
     rests = Rests.from_table(inputs["rests"])
     turns = Turns.from_tables(inputs["turns"], inputs["gyro"], rests.t0_ns)
-    obs = JointObservations(rests, turns, params.g_m_s2, accel, gyro)
+    obs = JointObservations(rests, turns, params.g_m_s2, accel, gyro,
+                            temperature_stream(inputs.get("temperature"), rests.t0_ns))
     fit = solver.solve(obs)
     acc, gyr = refined_triads(fit, {"accel": accel, "gyro": gyro}, solver.solver.name, rests)
     return {"calibration": triads_to_table([acc, gyr]),
@@ -190,7 +200,9 @@ STAGE = Stage(
     version="4",
     func=refine_joint,
     inputs={"rests": "rests", "turns": "turns", "gyro": "gyro",
-            "accel_calibration": "calibration", "gyro_calibration": "calibration"},
+            "accel_calibration": "calibration", "gyro_calibration": "calibration",
+            "temperature": "temperature"},
+    optional_inputs=frozenset({"temperature"}),
     outputs={"calibration": "calibration", "residuals": "residuals", "turn_residuals": "turn_residuals"},
     params=RefineParams,
     solver_kind="joint",

@@ -1,0 +1,259 @@
+"""Predict every sample of a recording under a calibration, and whiten what is left.
+
+``evaluate`` takes a session's raw streams, its segmentation and a calibration
+(any method's), builds the forward model in per-sample mode
+(``forward.JointModel``: rests, turns and every accelerometer sample inside the
+motions), profiles its nuisances (gravity directions, bias walks, the attitude
+path of every motion) with the calibration held fixed, and returns the fitted
+linearisation plus a table with one row per raw sample of every triad:
+time, time since power-on, segment id and kind, temperature and its rate,
+``|omega|``, ``|alpha|``, the gravity direction in body axes, the predicted raw
+reading, the residual and the whitened residual.
+
+Motions that cannot be predicted sample by sample are not integrated across
+silently: a motion that holds a gap, a shock or a splice (``events``) is left
+out whole, and one whose accelerometer shows the unit being carried (the
+residual, turned to the motion's start frame and integrated twice, moves it by
+more than ``TRANSLATION_M``: a lever arm moves it by at most twice its length)
+keeps only its end-points. Each becomes an event of the residual map.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyarrow as pa
+
+from .. import schemas
+from ..models import T_REF_C, TriadCalibration
+from ..observations import Rests, Turns
+from ..solvers.joint_ml import lower_gauge
+from .attitude import Attitude
+from .forward import JointModel, MotionAccel, Noise, Start
+from .linearised import Linearised, fit
+
+TRANSLATION_M = 0.15  # a motion that moves the unit further than this is a carry, not a rotation
+POWER_GAP_S = 1.0  # a gap in the samples longer than this is a power cycle (new turn-on bias)
+EXCLUDING = ("gap", "shock", "splice", "saturation")  # events that forbid integrating across
+
+
+@dataclass(frozen=True)
+class Event:
+    """Something the model must not be fitted across: ``kind`` (shock, gap, splice, saturation,
+    translation, change_point, ...), ``sensor``, ``window`` (t0, t1) s, ``detail`` one line."""
+
+    kind: str
+    sensor: str
+    window: tuple[float, float]
+    detail: str
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, "sensor": self.sensor, "window": [float(self.window[0]), float(self.window[1])],
+                "detail": self.detail}
+
+
+@dataclass
+class Evaluation:
+    """``lin`` the fitted per-sample model (lower-triangular gauge), ``frame`` Q (gauge -> the
+    calibration's frame), ``samples`` the per-sample residual table, ``events``, ``turn_index``
+    (m',) which of the session's turns the model kept, ``motion_sampled`` (m',) bool."""
+
+    lin: Linearised
+    frame: np.ndarray
+    samples: pa.Table
+    events: list[Event] = field(default_factory=list)
+    turn_index: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+
+
+def power_on_rests(rests: Rests, t: np.ndarray) -> np.ndarray:
+    """(n,) bool: rest i follows a gap in the samples longer than ``POWER_GAP_S`` (a power cycle)."""
+    if len(t) < 2:
+        return np.zeros(len(rests), bool)
+    gaps = np.flatnonzero(np.diff(t) > POWER_GAP_S)
+    ends = t[gaps]
+    out = np.zeros(len(rests), bool)
+    for e in ends:
+        after = np.flatnonzero(rests.t_start_s > e)
+        if len(after):
+            out[after[0]] = True
+    out[0] = False
+    return out
+
+
+def _overlaps(a0: np.ndarray, a1: np.ndarray, windows: list[tuple[float, float]]) -> np.ndarray:
+    hit = np.zeros(len(a0), bool)
+    for w0, w1 in windows:
+        hit |= (a0 <= w1) & (a1 >= w0)
+    return hit
+
+
+def displacement(model: JointModel, lin: Linearised) -> np.ndarray:
+    """(m,) m: how far each motion's unexplained acceleration carries the unit (start frame,
+    integrated twice from rest), from the per-sample residuals after the nuisances' fit."""
+    acc = model.accel
+    out = np.zeros(model.m)
+    if not len(acc.t):
+        return out
+    P = model.unpack(lin.x_g)
+    r = lin.r[lin.rows.of("accel_motion")].reshape(-1, 3)
+    e = np.linalg.solve(model.W_sample, r.T).T  # raw residual
+    a_body = e @ np.linalg.inv(P["S_a"]).T  # m/s^2, instrument axes
+    omega, _ = model._rates(P, lin.x_l)
+    R = Attitude.integrate(model.quad, omega).rotation_at(model.accel_points)
+    a_start = np.einsum("kij,kj->ki", R, a_body)
+    for j in np.unique(acc.motion):
+        sel = acc.motion == j
+        t = acc.t[sel]
+        if len(t) < 3:
+            continue
+        dt = np.diff(t, prepend=t[0])
+        v = np.cumsum(a_start[sel] * dt[:, None], axis=0)
+        x = np.cumsum(v * dt[:, None], axis=0)
+        out[j] = float(np.linalg.norm(x, axis=1).max())
+    return out
+
+
+def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests, turns: Turns,
+             accel: TriadCalibration, gyro: TriadCalibration, gravity: float,
+             q_accel: np.ndarray | None = None, q_gyro: np.ndarray | None = None,
+             temperature: tuple[np.ndarray, np.ndarray] | None = None,
+             events: list[Event] = (), knot_s: float = 0.25, max_iter: int = 10) -> Evaluation:
+    """The per-sample model of a session under ``accel``/``gyro`` (held fixed).
+
+    ``streams``: ``{"accel": (t (k,) s, y (k, 3)), "gyro": ...}`` raw, seconds from the
+    session's first sample (the rests' clock); ``turns``: the motions between consecutive rests;
+    ``q_*``: the bias random walks' intensities (per axis; the joint fit's); ``temperature``:
+    (t, T degC) for the samples inside motions; ``events``: those of the recording (motions
+    overlapping a gap, shock, splice or saturation are left out).
+    """
+    events = list(events)
+    t_a, y_a = streams["accel"]
+    m = len(turns)
+    t0 = np.array([t[0] if len(t) else np.nan for t in turns.t])
+    t1 = np.array([t[-1] if len(t) else np.nan for t in turns.t])
+    bad = _overlaps(np.nan_to_num(t0), np.nan_to_num(t1),
+                    [e.window for e in events if e.kind in EXCLUDING]) if m else np.zeros(0, bool)
+    keep = np.flatnonzero(~bad & np.array([len(t) > 1 for t in turns.t], bool)) if m else np.zeros(0, int)
+    kept = turns.subset(keep)
+    S0, Q = lower_gauge(accel.S)
+    start = Start(S0, accel.b0, Q @ gyro.M, gyro.b0, accel.k, gyro.k)
+    noise = Noise.from_rests(rests, q_accel, q_gyro)
+    power = power_on_rests(rests, t_a)
+
+    def build(sampled_turns: np.ndarray) -> tuple[JointModel, Linearised]:
+        acc = MotionAccel.select(t_a, y_a, rests, kept)
+        acc_keep = np.isin(acc.motion, sampled_turns)
+        acc = MotionAccel(acc.t[acc_keep], acc.y[acc_keep], acc.motion[acc_keep])
+        model = JointModel(rests, kept, gravity, start, noise, fit_k=False, accel=acc, knot_s=knot_s,
+                           power_on=power, temperature=temperature)
+        return model, fit(model, max_iter=max_iter, fixed_globals=True)
+
+    sampled = np.arange(len(keep))
+    model, lin = build(sampled)
+    moved = displacement(model, lin)
+    carried = moved > TRANSLATION_M
+    for j in np.flatnonzero(carried):
+        events.append(Event("translation", "accel", (float(t0[keep[j]]), float(t1[keep[j]])),
+                            f"the unit moved about {moved[j]:.2f} m during this motion (not a rotation "
+                            "about a fixed point): its samples are left out, its end-points kept"))
+    if carried.any():
+        model, lin = build(sampled[~carried])
+    for j in np.flatnonzero(bad):
+        what = [e.kind for e in events if e.kind in EXCLUDING and e.window[0] <= t1[j] and e.window[1] >= t0[j]]
+        events.append(Event("excluded_motion", "gyro", (float(t0[j]), float(t1[j])),
+                            f"motion {j} holds a {', '.join(sorted(set(what)))}: left out of the model"))
+    excluded = [e.window for e in events if e.kind in ("translation", "excluded_motion")]
+    samples = sample_table(model, lin, streams, rests, Q, excluded)
+    return Evaluation(lin, Q, samples, events, keep)
+
+
+# --------------------------------------------------------------------------- per-sample table
+
+
+def _segments(rests: Rests, t: np.ndarray, power_times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per sample time: segment id (2 i for rest i, 2 i + 1 for the motion after it) and kind."""
+    i = np.searchsorted(rests.t_start_s, t, "right") - 1
+    in_rest = (i >= 0) & (t <= rests.t_end_s[np.maximum(i, 0)])
+    seg = np.where(in_rest, 2 * i, 2 * i + 1)
+    kind = np.where(in_rest, "rest", "motion").astype(object)
+    kind[i < 0] = "motion"
+    return seg, kind
+
+
+def _motion_rates(model: JointModel, omega: np.ndarray, Q: np.ndarray, t: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """|omega| and |alpha| (k,) at times ``t``: the calibrated rate of the motions (instrument
+    frame) and its derivative, interpolated; zero outside the motions."""
+    ms = model.motions
+    w_norm, a_norm = np.zeros(len(t)), np.zeros(len(t))
+    for j in range(ms.count):
+        sel = ms.motion == j
+        tj = ms.t[sel]
+        if len(tj) < 2:
+            continue
+        wj = omega[sel] @ Q
+        aj = np.gradient(wj, tj, axis=0)
+        inside = (t >= tj[0]) & (t <= tj[-1])
+        w_norm[inside] = np.interp(t[inside], tj, np.linalg.norm(wj, axis=1))
+        a_norm[inside] = np.interp(t[inside], tj, np.linalg.norm(aj, axis=1))
+    return w_norm, a_norm
+
+
+def sample_table(model: JointModel, lin: Linearised, streams, rests: Rests, Q: np.ndarray,
+                 excluded: list[tuple[float, float]] = ()) -> pa.Table:
+    """One row per raw accelerometer and gyro sample (see the module docstring)."""
+    P = model.unpack(lin.x_g)
+    parts = []
+    t_all = np.sort(np.concatenate([streams[s][0] for s in ("accel", "gyro")]))
+    power_times = t_all[np.flatnonzero(np.diff(t_all) > POWER_GAP_S) + 1] if len(t_all) > 1 else np.zeros(0)
+    u_rest = model.gravity(lin.x_l)[0]
+    waa, wab = model.walk_states(lin.x_l, "wa")
+    wga, wgb = model.walk_states(lin.x_l, "wg")
+    L = {"accel": np.linalg.cholesky(model.noise.accel_sample),
+         "gyro": np.linalg.cholesky(model.noise.gyro_sample)}
+    omega_all, _ = model._rates(P, lin.x_l)
+    _, _, _, sig = model.residuals(lin.x_g, lin.x_l, signals=True)
+    for sensor in ("accel", "gyro"):
+        t, y = streams[sensor]
+        n = len(t)
+        seg, kind = _segments(rests, t, power_times)
+        for w0, w1 in excluded:
+            kind[(t >= w0) & (t <= w1) & (kind == "motion")] = "excluded"
+        T = model.temperature_at(t)
+        pred, whit, grav = (np.full((n, 3), np.nan) for _ in range(3))
+        rest = kind == "rest"
+        if rest.any():  # the rest's direction, the bias walk interpolated across the rest
+            r = seg[rest] // 2
+            frac = np.clip((t[rest] - rests.t_start_s[r]) / np.maximum(model.length[r], 1e-12), 0, 1)[:, None]
+            grav[rest] = u_rest[r] @ Q
+            if sensor == "accel":
+                pred[rest] = model.accel_prediction(P, model.g * u_rest[r], t[rest],
+                                                    (1 - frac) * waa[r] + frac * wab[r])
+            else:
+                pred[rest] = P["b_g"] + np.outer(T[rest] - T_REF_C, P["k_g"]) + (1 - frac) * wga[r] + frac * wgb[r]
+            whit[rest] = np.linalg.solve(L[sensor], (y[rest] - pred[rest]).T).T
+        if sensor == "accel" and len(model.accel.t):
+            idx = np.searchsorted(t, model.accel.t)
+            r_m = lin.r[lin.rows.of("accel_motion")].reshape(-1, 3)
+            pred[idx] = model.accel.y - np.linalg.solve(model.W_sample, r_m.T).T
+            whit[idx] = r_m
+            grav[idx] = sig["gravity_motion"] @ Q
+        w_norm, a_norm = _motion_rates(model, omega_all, Q, t)
+        parts.append(pa.table({
+            "sensor": pa.array([sensor] * n), "t_s": t, "t_on_s": t - _last_power_on(t, power_times, t_all),
+            "segment": seg.astype(np.int64), "kind": pa.array(kind.astype(str)),
+            "temperature": T, "temperature_rate": np.gradient(T, t) if n > 1 else np.zeros(n),
+            "omega_norm": w_norm, "alpha_norm": a_norm,
+            "gravity": pa.array(list(grav), type=pa.list_(pa.float64(), 3)),
+            "predicted": pa.array(list(pred), type=pa.list_(pa.float64(), 3)),
+            "residual": pa.array(list(y - pred), type=pa.list_(pa.float64(), 3)),
+            "whitened": pa.array(list(whit), type=pa.list_(pa.float64(), 3)),
+        }))
+    return schemas.stamp(pa.concat_tables(parts), "sample_residuals")
+
+
+def _last_power_on(t: np.ndarray, power_times: np.ndarray, t_all: np.ndarray) -> np.ndarray:
+    starts = np.r_[t_all.min() if len(t_all) else 0.0, power_times]
+    return starts[np.searchsorted(starts, t, "right") - 1]

@@ -1,0 +1,327 @@
+"""Where the model fails: chi2/dof of whitened residuals per cell, ranked, with FDR control.
+
+The rows of the fitted per-sample model (``evaluate.Evaluation``: rest means,
+turn rows -- the gyro's evidence in motion --, every accelerometer sample inside
+the motions) are binned into cells: sensor x axis x regime (static / motion) x
+one regime variable at a time (``|omega|``, ``|alpha|``, temperature, its rate,
+time since power-on, which axis gravity is along, time in the session). A cell's
+statistic is the sum of its squared whitened residuals against its effective
+degrees of freedom (rows minus their leverage: what the fitted nuisances and
+parameters absorb), so ``chi2/dof`` is 1 in expectation when the model and its
+noise model hold. Within-rest scatter about each rest's mean (the noise model's
+own check: vibrating or interfered rests) forms cells of its own.
+
+Each cell's upper-tail p-value comes from the chi-square distribution; cells are
+flagged by Benjamini-Hochberg across all cells at ``q``; flagged cells come first,
+strongest evidence first. Change points of the rests' whitened residual series
+(bias jumps; ``ruptures``' PELT with a penalty for few false alarms) and isolated
+events join the map as events.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
+from .evaluate import Evaluation, Event
+from .forward import BLOCKS
+
+Q_FDR = 0.05
+MIN_DOF = 5.0
+AXES = ("x", "y", "z")
+BINS = {
+    "|omega| rad/s": [0.0, 0.05, 0.2, 0.5, 1.0, 2.0, np.inf],
+    "|alpha| rad/s^2": [0.0, 0.2, 1.0, 3.0, 10.0, np.inf],
+    "time since power-on s": [0.0, 60.0, 300.0, 900.0, np.inf],
+    "temperature rate degC/s": [-np.inf, -2e-3, 2e-3, np.inf],
+}
+GRAVITY_CELLS = ("+x up", "-x up", "+y up", "-y up", "+z up", "-z up")
+TIME_WINDOWS = 10
+
+
+@dataclass(frozen=True)
+class Cell:
+    sensor: str
+    axes: tuple[str, ...]
+    regime: str
+    variable: str
+    lo: float
+    hi: float
+    chi2: float
+    dof: float
+    rows: np.ndarray  # indices into the row set the cell was built from
+    windows: list[tuple[float, float]]
+
+    @property
+    def chi2_per_dof(self) -> float:
+        return self.chi2 / self.dof
+
+    @property
+    def p_value(self) -> float:
+        return float(chi2_dist.sf(self.chi2, self.dof))
+
+
+@dataclass
+class RowSet:
+    """The rows a map is built from: whitened residual ``r`` (N,), degrees of freedom each
+    contributes ``w`` (N,) (1 - leverage), and per row ``sensor``, ``axis`` (0-2, -1: all),
+    ``regime`` (static | motion), ``t`` (s) and the regime variables ``var[name]`` (N,)."""
+
+    r: np.ndarray
+    w: np.ndarray
+    sensor: np.ndarray
+    axis: np.ndarray
+    regime: np.ndarray
+    t: np.ndarray
+    var: dict[str, np.ndarray]
+    family: str = "model"
+
+    def take(self, sel: np.ndarray) -> RowSet:
+        return RowSet(self.r[sel], self.w[sel], self.sensor[sel], self.axis[sel], self.regime[sel], self.t[sel],
+                      {k: v[sel] for k, v in self.var.items()}, self.family)
+
+
+def vectors(table, name: str) -> np.ndarray:
+    """(n, 3) a fixed-size-list column of a table."""
+    col = table.column(name).combine_chunks()
+    return col.flatten().to_numpy(zero_copy_only=False).reshape(len(col), -1)
+
+
+def _gravity_cell(g: np.ndarray) -> np.ndarray:
+    """Index into GRAVITY_CELLS of the axis most aligned with gravity (up), per row; -1 unknown."""
+    ok = np.all(np.isfinite(g), axis=1)
+    a = np.argmax(np.abs(np.where(ok[:, None], g, 0.0)), axis=1)
+    sign = np.take_along_axis(g, a[:, None], 1)[:, 0] < 0
+    return np.where(ok, 2 * a + sign, -1)
+
+
+def model_rows(ev: Evaluation) -> RowSet:
+    """The fitted model's data rows (rest means, turns, motion samples), with their regimes."""
+    lin = ev.lin
+    model = lin.model
+    rows = lin.rows
+    data = np.isin(rows.block, [BLOCKS.index(b) for b in ("accel_rest", "gyro_rest", "turn", "accel_motion")])
+    idx = np.flatnonzero(data)
+    block = rows.block[idx]
+    name = np.array(BLOCKS)[block]
+    sensor = np.where(np.isin(name, ["accel_rest", "accel_motion"]), "accel", "gyro")
+    regime = np.where(np.isin(name, ["accel_rest", "gyro_rest"]), "static", "motion")
+    t = rows.t[idx]
+    samples = ev.samples
+    st, ssens = samples.column("t_s").to_numpy(), samples.column("sensor").to_numpy(zero_copy_only=False)
+    acc_rows = ssens == "accel"
+    s_t = st[acc_rows]
+    order = np.argsort(s_t)
+
+    def at(col: str, times: np.ndarray) -> np.ndarray:
+        values = samples.column(col).to_numpy(zero_copy_only=False)[acc_rows][order]
+        return np.interp(times, s_t[order], values)
+
+    grav = vectors(samples, "gravity")[acc_rows][order]
+    g_at = np.stack([np.interp(t, s_t[order], grav[:, k]) for k in range(3)], 1) if len(s_t) else np.zeros((len(t), 3))
+    T = model.temperature_at(t)
+    var = {
+        "|omega| rad/s": np.where(regime == "motion", at("omega_norm", t), 0.0),
+        "|alpha| rad/s^2": np.where(regime == "motion", at("alpha_norm", t), 0.0),
+        "time since power-on s": at("t_on_s", t),
+        "temperature degC": T,
+        "temperature rate degC/s": at("temperature_rate", t),
+        "gravity along": _gravity_cell(g_at).astype(float),
+        "time s": t,
+    }
+    # a turn's rows: its mean |omega| over the motion, not the knot interval's instant
+    return RowSet(lin.r[idx], 1.0 - lin.leverage[idx], sensor, rows.axis[idx], regime, t, var)
+
+
+def rest_scatter_rows(ev: Evaluation) -> RowSet:
+    """Within-rest scatter: each rest sample's whitened residual about its rest's mean (the
+    mean is the model rows' business), ``(n_i - 1) / n_i`` degrees of freedom each."""
+    s = ev.samples
+    kind = s.column("kind").to_numpy(zero_copy_only=False)
+    keep = kind == "rest"
+    sensor = s.column("sensor").to_numpy(zero_copy_only=False)[keep]
+    seg = s.column("segment").to_numpy()[keep]
+    t = s.column("t_s").to_numpy()[keep]
+    w = vectors(s, "whitened")[keep]
+    key = 2 * seg + (sensor == "gyro")
+    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    means = np.zeros((len(counts), 3))
+    np.add.at(means, inv, w)
+    means /= counts[:, None]
+    d = (w - means[inv]).ravel()
+    n = np.repeat(counts[inv], 3)
+    rows = len(d)
+    T = np.repeat(s.column("temperature").to_numpy()[keep], 3)
+    return RowSet(d, (n - 1) / n, np.repeat(sensor, 3), np.tile(np.arange(3), len(t)), np.full(rows, "static"),
+                  np.repeat(t, 3), {"time s": np.repeat(t, 3), "temperature degC": T}, family="noise")
+
+
+def _windows(t: np.ndarray, contrib: np.ndarray, gap: float = 2.0, keep: int = 12) -> list[tuple[float, float]]:
+    """Time windows (s) covered by rows at ``t``, joined across gaps < ``gap``; the ``keep``
+    windows holding most of the chi2 excess, in time order."""
+    if not len(t):
+        return []
+    o = np.argsort(t)
+    ts, cs = t[o], contrib[o]
+    brk = np.flatnonzero(np.diff(ts) > gap) + 1
+    starts, ends = np.r_[0, brk], np.r_[brk, len(ts)]
+    wins = [(float(ts[a]), float(ts[b - 1]), float(cs[a:b].sum())) for a, b in zip(starts, ends, strict=True)]
+    wins = sorted(wins, key=lambda w: -w[2])[:keep]
+    return sorted((w[0], w[1]) for w in wins)
+
+
+def _bins(name: str, x: np.ndarray) -> list[tuple[float, float]]:
+    if name in BINS:
+        e = BINS[name]
+        return list(zip(e[:-1], e[1:], strict=True))
+    if name == "gravity along":
+        return [(float(i), float(i)) for i in range(6)]
+    finite = x[np.isfinite(x)]
+    if not len(finite) or np.ptp(finite) <= (1.0 if name.startswith("temperature") else 0.0):
+        return []
+    n = TIME_WINDOWS if name == "time s" else 4
+    e = np.quantile(finite, np.linspace(0, 1, n + 1)) if name != "time s" else \
+        np.linspace(finite.min(), finite.max(), n + 1)
+    e[-1] = np.nextafter(e[-1], np.inf)
+    return [(float(a), float(b)) for a, b in zip(e[:-1], e[1:], strict=True) if b > a]
+
+
+def cells(rs: RowSet) -> list[Cell]:
+    """Every cell of ``rs`` with at least ``MIN_DOF`` degrees of freedom."""
+    out = []
+    for sensor in np.unique(rs.sensor):
+        for regime in np.unique(rs.regime[rs.sensor == sensor]):
+            base = (rs.sensor == sensor) & (rs.regime == regime)
+            axes = sorted(set(rs.axis[base].tolist()))
+            groups = [((AXES[a],), base & (rs.axis == a)) for a in axes if a >= 0]
+            groups.append((tuple(AXES), base))
+            for ax, sel in groups:
+                out += _cells_of(rs, sensor, ax, regime, sel)
+    return out
+
+
+def _cells_of(rs: RowSet, sensor: str, axes: tuple[str, ...], regime: str, sel: np.ndarray) -> list[Cell]:
+    def make(variable: str, lo: float, hi: float, m: np.ndarray) -> Cell | None:
+        idx = np.flatnonzero(m)
+        dof = float(rs.w[idx].sum())
+        if dof < MIN_DOF:
+            return None
+        r2 = rs.r[idx] ** 2
+        return Cell(sensor, axes, regime, variable, lo, hi, float(r2.sum()), dof, idx,
+                    _windows(rs.t[idx], r2 - rs.w[idx]))
+
+    label = "all" if rs.family == "model" else "within-rest scatter"
+    out = [make(label, -np.inf, np.inf, sel)]
+    for name, x in rs.var.items():
+        if regime == "static" and name in ("|omega| rad/s", "|alpha| rad/s^2"):
+            continue
+        for lo, hi in _bins(name, x[sel]):
+            m = sel & ((x == lo) if name == "gravity along" else (x >= lo) & (x < hi))
+            if m.sum() == sel.sum():
+                continue  # the bin is the whole set: the "all" cell says it
+            v = name if rs.family == "model" else f"{name} (within-rest scatter)"
+            out.append(make(v, lo, hi, m))
+    return [c for c in out if c is not None]
+
+
+def benjamini_hochberg(p: np.ndarray, q: float = Q_FDR) -> np.ndarray:
+    """(n,) bool: discoveries of the Benjamini-Hochberg step-up procedure at level ``q``."""
+    p = np.asarray(p, float)
+    n = len(p)
+    if not n:
+        return np.zeros(0, bool)
+    order = np.argsort(p)
+    below = p[order] <= q * np.arange(1, n + 1) / n
+    k = np.flatnonzero(below).max() + 1 if below.any() else 0
+    out = np.zeros(n, bool)
+    out[order[:k]] = True
+    return out
+
+
+def change_points(ev: Evaluation, penalty_sd: float = 4.0) -> list[Event]:
+    """Mean shifts in each sensor's rest-mean whitened residual series (bias jumps between
+    rests): PELT (``ruptures``) on the series, the penalty set so that a pure white series
+    yields a change point rarely; each kept when its step exceeds ``penalty_sd`` standard errors."""
+    import ruptures
+
+    lin = ev.lin
+    out = []
+    for block, sensor in (("gyro_rest", "gyro"), ("accel_rest", "accel")):
+        sel = lin.rows.of(block)
+        z = lin.r[sel].reshape(-1, 3)
+        t = lin.rows.t[sel].reshape(-1, 3)[:, 0]
+        n = len(z)
+        if n < 12:
+            continue
+        pen = 3 * 2 * np.log(n)  # 3-dimensional mean shift: a conservative BIC
+        try:
+            bkps = ruptures.Pelt(model="l2", min_size=3, jump=1).fit(z).predict(pen=pen)[:-1]
+        except Exception:  # noqa: BLE001 - a change-point search never stops the map
+            continue
+        edges = [0, *bkps, n]
+        for k, b in enumerate(bkps):
+            left, right = z[edges[k]:b], z[b:edges[k + 2]]
+            step = left.mean(0) - right.mean(0)
+            se = np.sqrt(1 / len(left) + 1 / len(right))
+            if np.abs(step).max() / se < penalty_sd:
+                continue
+            ax = AXES[int(np.argmax(np.abs(step)))]
+            out.append(Event("change_point", sensor, (float(t[b - 1]), float(t[b])),
+                             f"the {sensor} rest residuals step by {np.abs(step).max() / se:.1f} standard "
+                             f"errors (largest on {ax}) between the rests at {t[b - 1]:.1f} s and {t[b]:.1f} s"))
+    return out
+
+
+def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR) -> dict:
+    """The ``residual_map.json`` document of ``spec/contracts.md`` for an evaluation."""
+    model_rs = model_rows(ev)
+    noise_rs = rest_scatter_rows(ev)
+    all_cells = cells(model_rs) + cells(noise_rs)
+    p = np.array([c.p_value for c in all_cells])
+    flagged = benjamini_hochberg(p, q)
+    order = sorted(range(len(all_cells)),
+                   key=lambda i: (not flagged[i], p[i], -all_cells[i].chi2_per_dof))
+    blocks = []
+    for name, b in ev.lin.blocks().items():
+        sensor = {"walk_gyro": "gyro", "walk_accel": "accel", "k_prior": "prior"}.get(name, name.split("_")[0])
+        if name == "turn":
+            sensor = "gyro"
+        kind = {"accel_rest": "rest", "gyro_rest": "rest", "turn": "motion", "accel_motion": "motion"}.get(name, "prior")
+        blocks.append({"block": name, "sensor": sensor, "kind": kind, "chi2": b["chi2"], "dof": b["dof"],
+                       "chi2_per_dof": b["chi2_per_dof"], "rows": b["rows"]})
+    sc = noise_rs
+    for sensor in np.unique(sc.sensor):
+        m = sc.sensor == sensor
+        c2, dof = float((sc.r[m] ** 2).sum()), float(sc.w[m].sum())
+        blocks.append({"block": f"{sensor}_rest_samples", "sensor": str(sensor), "kind": "rest",
+                       "chi2": c2, "dof": dof, "chi2_per_dof": c2 / dof if dof else None, "rows": int(m.sum())})
+    cell_docs = []
+    for rank, i in enumerate(order):
+        c = all_cells[i]
+        cell_docs.append({
+            "sensor": c.sensor, "axes": list(c.axes), "regime": c.regime, "variable": c.variable,
+            "range": [_json_edge(c.lo), _json_edge(c.hi)] if c.variable != "gravity along"
+            else [GRAVITY_CELLS[int(c.lo)]] * 2,
+            "windows": [list(w) for w in c.windows], "chi2": c.chi2,
+            "chi2_per_dof": c.chi2_per_dof, "dof": c.dof, "p_value": float(p[i]), "flagged": bool(flagged[i]),
+            "rank": rank,
+        })
+    events = list(ev.events) + change_points(ev)
+    return {"session": session, "blocks": blocks, "cells": cell_docs,
+            "events": [e.to_dict() for e in sorted(events, key=lambda e: e.window[0])],
+            "noise_model": noise_summary(ev), "fdr_q": q}
+
+
+def _json_edge(x: float) -> float | None:
+    return None if not np.isfinite(x) else float(x)
+
+
+def noise_summary(ev: Evaluation) -> dict:
+    """The noise model the map whitened with: one sample's sigma per axis and the walks."""
+    n = ev.lin.model.noise
+    return {"accel_sample_sigma": np.sqrt(np.diag(n.accel_sample)).tolist(),
+            "gyro_sample_sigma": np.sqrt(np.diag(n.gyro_sample)).tolist(),
+            "accel_bias_walk_sigma": np.sqrt(n.q_accel).tolist(), "gyro_bias_walk_sigma": np.sqrt(n.q_gyro).tolist(),
+            "units": "accel m/s^2 (per sqrt(s) for walks), gyro rad/s; raw axes"}

@@ -1,0 +1,120 @@
+"""The residual map in the report: where the model fails, as a heat map and along the session.
+
+``map_lines`` writes the markdown (blocks, the ranked cells, the events);
+``draw_heat_map`` shows chi2/dof per cell for one sensor (rows: regime variable
+and bin; columns: axes), ``draw_time_series`` the whitened residuals along the
+session with the rests shaded and the flagged cells' windows marked.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+
+GRAVITY_CELLS = ("+x up", "-x up", "+y up", "-y up", "+z up", "-z up")
+
+
+def _fmt_range(c: dict) -> str:
+    lo, hi = c["range"]
+    if isinstance(lo, str):
+        return lo
+    if lo is None and hi is None:
+        return "all"
+    lo_s = "-inf" if lo is None else f"{lo:.3g}"
+    hi_s = "inf" if hi is None else f"{hi:.3g}"
+    return f"[{lo_s}, {hi_s})"
+
+
+def map_lines(doc: dict, top: int = 12) -> list[str]:
+    """Markdown: the blocks' chi2/dof, the ranked cells, the events."""
+    lines = ["## Residual map: where the calibrated model fails", "",
+             "Every sample predicted under the calibration (rests, turns, every accelerometer sample "
+             "inside the motions), whitened by the recording's own noise model; chi2/dof is 1 +- "
+             "sqrt(2/dof) where the model holds. Cells are flagged by Benjamini-Hochberg at "
+             f"q = {doc.get('fdr_q', 0.05)} across all {len(doc['cells'])} cells.", "",
+             "| block | sensor | rows | chi2/dof (white noise only) | chi2/dof (own noise model) | dof |",
+             "|---|---|---|---|---|---|"]
+    for b in doc["blocks"]:
+        white = b.get("chi2_per_dof_white")
+        lines.append(f"| {b['block']} | {b['sensor']} | {b.get('rows', '')} | "
+                     f"{'' if white is None else f'{white:.3g}'} | "
+                     f"{'' if b['chi2_per_dof'] is None else format(b['chi2_per_dof'], '.3g')} | {b['dof']:.0f} |")
+    flagged = [c for c in doc["cells"] if c["flagged"]]
+    lines += ["", f"**{len(flagged)} cell(s) flagged.**" if flagged else
+              "**No cell flagged**: the model explains the recording within its noise.", ""]
+    lines += ["| rank | sensor | axes | regime | variable | range | chi2/dof | dof | p | flagged |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+    for c in doc["cells"][:top]:
+        lines.append(f"| {c['rank']} | {c['sensor']} | {','.join(c['axes'])} | {c['regime']} | {c['variable']} | "
+                     f"{_fmt_range(c)} | {c['chi2_per_dof']:.3g} | {c['dof']:.0f} | {c['p_value']:.2g} | "
+                     f"{'yes' if c['flagged'] else ''} |")
+    lines.append("")
+    if doc["events"]:
+        lines += ["Events:", ""] + [f"- {e['kind']} ({e['sensor']}) at {e['window'][0]:.1f}-{e['window'][1]:.1f} s: "
+                                    f"{e['detail']}" for e in doc["events"]] + [""]
+    else:
+        lines += ["No events (gaps, shocks, splices, carries, change points).", ""]
+    return lines
+
+
+def draw_heat_map(fig, doc: dict, sensor: str) -> None:
+    """chi2/dof per (variable, bin) row and axis column for one sensor, both regimes."""
+    cells = [c for c in doc["cells"] if c["sensor"] == sensor and len(c["axes"]) == 1]
+    keys = sorted({(c["regime"], c["variable"], _fmt_range(c)) for c in cells},
+                  key=lambda k: (k[0], k[1], k[2]))
+    M = np.full((len(keys), 3), np.nan)
+    flag = np.zeros((len(keys), 3), bool)
+    index = {k: i for i, k in enumerate(keys)}
+    for c in cells:
+        i = index[(c["regime"], c["variable"], _fmt_range(c))]
+        j = "xyz".index(c["axes"][0])
+        M[i, j] = c["chi2_per_dof"]
+        flag[i, j] = c["flagged"]
+    ax = fig.subplots(1, 1)
+    if not len(keys):
+        ax.text(0.5, 0.5, "no cells", ha="center")
+        return
+    im = ax.imshow(np.log10(np.clip(M, 1e-2, None)), aspect="auto", cmap="RdBu_r", vmin=-0.5, vmax=0.5)
+    for i, j in zip(*np.nonzero(flag), strict=True):
+        ax.text(j, i, "*", ha="center", va="center", color="k", fontsize=10)
+    ax.set_xticks(range(3), ["x", "y", "z"])
+    ax.set_yticks(range(len(keys)), [f"{r}: {v} {b}" for r, v, b in keys], fontsize=5)
+    cb = fig.colorbar(im, ax=ax)
+    cb.set_label("log10 chi2/dof (0 = the model holds)")
+
+
+def _vec(t: pa.Table, name: str) -> np.ndarray:
+    col = t.column(name).combine_chunks()
+    return col.flatten().to_numpy(zero_copy_only=False).reshape(len(col), -1)
+
+
+def draw_time_series(fig, samples: pa.Table, doc: dict, every: int = 5) -> None:
+    """Whitened residual per sensor and axis along the session (every ``every``-th sample),
+    rests shaded, flagged cells' windows in red, events as vertical lines."""
+    axes = fig.subplots(2, 1, sharex=True)
+    sensor = samples.column("sensor").to_numpy(zero_copy_only=False)
+    t = samples.column("t_s").to_numpy()
+    kind = samples.column("kind").to_numpy(zero_copy_only=False)
+    w = _vec(samples, "whitened")
+    flagged = [c for c in doc["cells"] if c["flagged"]]
+    for ax, s in zip(axes, ("accel", "gyro"), strict=True):
+        m = sensor == s
+        ts, ws, ks = t[m], w[m], kind[m]
+        rest = ks == "rest"
+        edges = np.flatnonzero(np.diff(np.r_[0, rest.astype(int), 0]))
+        for a, b in zip(edges[0::2], edges[1::2], strict=True):
+            ax.axvspan(ts[a] / 60, ts[b - 1] / 60, color="0.9", lw=0)
+        for i, c in enumerate("xyz"):
+            ax.plot(ts[::every] / 60, ws[::every, i], ".", ms=1, alpha=0.5, label=c)
+        for c in flagged:
+            if c["sensor"] == s:
+                for w0, w1 in c["windows"]:
+                    ax.axvspan(w0 / 60, w1 / 60, color="r", alpha=0.2, lw=0)
+        for e in doc["events"]:
+            if e["sensor"] in (s, "all"):
+                ax.axvline(e["window"][0] / 60, color="m", lw=0.8)
+        ax.set_ylim(-6, 6)
+        ax.set_ylabel(f"{s} whitened\nresidual", fontsize=8)
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0), markerscale=6)
+        ax.grid(alpha=0.3)
+    axes[1].set_xlabel("session time, min (rests shaded; flagged windows red; events magenta)")

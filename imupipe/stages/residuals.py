@@ -1,0 +1,105 @@
+"""Stage ``map_residuals``: predict every sample under the calibration and map where it fails.
+
+Inputs: the session's raw ``accel`` and ``gyro`` (and ``temperature``), the
+segmentation's ``rests`` and ``turns`` (and ``events`` when the segmentation
+writes them), and the ``calibration`` to judge (the joint refinement's, whose
+details carry the noise model it fitted: the bias walks). Outputs the per-sample
+residual table (``sample_residuals``) and the residual map (``residual_map``: its
+cells as rows, the whole ``residual_map.json`` document in the schema metadata).
+See ``imupipe.diagnosis`` and docs/residual-map.md.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+
+import numpy as np
+import pyarrow as pa
+from pydantic import Field
+
+from .. import schemas
+from ..components import BoundSolver, Params, Stage
+from ..diagnosis.evaluate import Event, evaluate
+from ..diagnosis.residual_map import residual_map
+from ..models import Calibration
+from ..observations import Rests, Turns
+from .refine import STANDARD_GRAVITY, temperature_stream
+from .segment import xyz
+
+MAP_KEY = b"imupipe.residual_map"
+
+
+class MapParams(Params):
+    knot_s: float = Field(0.25, gt=0)
+    """Spacing of the attitude-error knots inside each motion, s."""
+    fdr_q: float = Field(0.05, gt=0, lt=1)
+    """False-discovery rate of the flagged cells (Benjamini-Hochberg)."""
+    g_m_s2: float | None = Field(None, gt=0)
+    """Local gravity, m/s^2; default: the one the calibration was fitted with."""
+
+
+def _events(table: pa.Table | None) -> list[Event]:
+    if table is None:
+        return []
+    cols = set(table.column_names)
+    out = []
+    for row in table.to_pylist():
+        out.append(Event(str(row.get("kind", "event")), str(row.get("sensor", "")),
+                         (float(row["t_start_s"]), float(row["t_end_s"])),
+                         str(row.get("detail", "")) if "detail" in cols else ""))
+    return out
+
+
+def map_residuals(inputs: Mapping[str, pa.Table], params: MapParams, solver: BoundSolver | None) -> dict:
+    rests = Rests.from_table(inputs["rests"])
+    turns = Turns.from_tables(inputs["turns"], inputs["gyro"], rests.t0_ns)
+    cal = Calibration.from_tables(inputs["calibration"])
+    accel, gyro = cal["accel"], cal["gyro"]
+    joint = gyro.details.get("joint", {})
+    q_g = np.asarray(joint.get("gyro_bias_walk", {}).get("q", [0.0] * 3), float)
+    q_a = np.asarray(joint.get("accel_bias_walk", {}).get("q", [0.0] * 3), float)
+    g = params.g_m_s2 or float(joint.get("gravity_m_s2", STANDARD_GRAVITY))
+    streams = {}
+    for s in ("accel", "gyro"):
+        t_ns, y = xyz(inputs[s])
+        streams[s] = ((t_ns - rests.t0_ns) * 1e-9, y)
+    ev = evaluate(streams, rests, turns, accel, gyro, g, q_a, q_g,
+                  temperature_stream(inputs.get("temperature"), rests.t0_ns),
+                  _events(inputs.get("events")), knot_s=params.knot_s)
+    doc = residual_map(ev, q=params.fdr_q)
+    cells = doc["cells"]
+    table = pa.table({
+        "rank": np.array([c["rank"] for c in cells], dtype=np.int64),
+        "sensor": [c["sensor"] for c in cells], "axes": [",".join(c["axes"]) for c in cells],
+        "regime": [c["regime"] for c in cells], "variable": [c["variable"] for c in cells],
+        "lo": [_edge(c["range"][0]) for c in cells], "hi": [_edge(c["range"][1]) for c in cells],
+        "chi2": [c["chi2"] for c in cells], "dof": [c["dof"] for c in cells],
+        "chi2_per_dof": [c["chi2_per_dof"] for c in cells], "p_value": [c["p_value"] for c in cells],
+        "flagged": [c["flagged"] for c in cells],
+    })
+    meta = {MAP_KEY.decode(): json.dumps(doc)}
+    return {"samples": ev.samples, "map": schemas.stamp(table, "residual_map", meta)}
+
+
+def _edge(x) -> float:
+    if isinstance(x, str) or x is None:
+        return float("nan")
+    return float(x)
+
+
+STAGE = Stage(
+    name="map_residuals",
+    version="1",
+    func=map_residuals,
+    inputs={"accel": "accel", "gyro": "gyro", "temperature": "temperature", "rests": "rests",
+            "turns": "turns", "calibration": "calibration", "events": "events"},
+    outputs={"samples": "sample_residuals", "map": "residual_map"},
+    params=MapParams,
+    optional_inputs=frozenset({"temperature", "events"}),
+    description="Every sample predicted under the calibration (rests, turns, motions), whitened "
+                "by the recording's noise model; chi2/dof per sensor x axis x regime cell with "
+                "Benjamini-Hochberg flags, change points and events.",
+)
+
+COMPONENTS = [STAGE]
