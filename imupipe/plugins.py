@@ -2,11 +2,14 @@
 
 One manager per run (``make_registry``), never at import time. Built-ins are
 discovered through the same ``imupipe`` entry-point group as third-party plugins.
+Each kind's registration hooks run when that kind is first looked up, so a
+command imports only the component modules it uses (``imupipe ingest``: the
+readers, not the solvers).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -20,12 +23,35 @@ KINDS = ("readers", "stages", "solvers", "exporters", "executors", "effects")
 ENTRY_POINT_GROUP = "imupipe"
 
 
+class _ByKind(dict):
+    """kind -> {name: Component}; a kind's registration hooks run at its first lookup."""
+
+    def __init__(self, load: Callable[[str], None] | None = None) -> None:
+        super().__init__({k: {} for k in KINDS})
+        self._load = load
+        self._loaded: set[str] = set()
+
+    def __getitem__(self, kind: str) -> dict[str, Component]:
+        if kind not in self._loaded and self._load is not None and kind in KINDS:
+            self._loaded.add(kind)
+            try:
+                self._load(kind)
+            except BaseException:
+                self._loaded.discard(kind)
+                super().__getitem__(kind).clear()
+                raise
+        return super().__getitem__(kind)
+
+    def get(self, kind, default=None):  # noqa: D102 - dict.get bypasses __getitem__
+        return self[kind] if kind in self else default
+
+
 @dataclass
 class Registry:
-    """Everything the plugins registered, by kind and name."""
+    """Everything the plugins registered, by kind and name (each kind loaded on first use)."""
 
     pm: pluggy.PluginManager
-    components: dict[str, dict[str, Component]] = field(default_factory=lambda: {k: {} for k in KINDS})
+    components: dict[str, dict[str, Component]] = field(default_factory=_ByKind)
 
     def get(self, kind: str, name: str) -> Any:
         """The registered object, or an error naming the known choices."""
@@ -72,15 +98,18 @@ def make_registry(plugins: Iterable[object] = (), *, entry_points_too: bool = Tr
         pm.register(builtin_hooks, name="imupipe.builtin_hooks")
 
     registry = Registry(pm)
-    for kind in KINDS:
+
+    def load(kind: str) -> None:
         hook = getattr(pm.hook, f"imupipe_register_{kind}")
         for impl in hook.get_hookimpls():
             plugin_name, dist, dist_version = _plugin_name_and_dist(pm, impl.plugin)
 
-            def register(obj: Any, *, _kind=kind, _plugin=plugin_name, _dist=dist, _ver=dist_version) -> None:
-                _register(registry, _kind, obj, _plugin, _dist, _ver)
+            def register(obj: Any, *, _plugin=plugin_name, _dist=dist, _ver=dist_version) -> None:
+                _register(registry, kind, obj, _plugin, _dist, _ver)
 
             impl.function(register=register)
+
+    registry.components = _ByKind(load)
     return registry
 
 

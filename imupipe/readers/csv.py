@@ -14,14 +14,17 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import polars as pl
 import pyarrow as pa
 
 from .. import schemas
 from ..components import Recording
 from ..errors import ReaderError
+
+if TYPE_CHECKING:
+    import polars as pl
 
 CANONICAL = {
     "accel": ("accel_x", "accel_y", "accel_z"),
@@ -58,6 +61,8 @@ def read_columns(path: Path, refs: Mapping[str, ColumnRef], *, delimiter: str = 
     Raises ``ReaderError`` naming the file and the line for a missing column, an
     empty or unparseable value, or a non-finite value.
     """
+    import polars as pl  # here, not at module level: registering the readers stays cheap
+
     if not path.is_file():
         raise ReaderError(f"{path}: no such file")
     if path.stat().st_size == 0:
@@ -114,6 +119,8 @@ def read_columns(path: Path, refs: Mapping[str, ColumnRef], *, delimiter: str = 
 def _typed_frame(source: Path | io.BytesIO, sep: str, header: bool, skip_lines: int, width: int,
                  dtypes: dict[int, pl.DataType]) -> pl.DataFrame | None:
     """The fast path: parse the wanted columns as numbers; None on any trouble or empty value."""
+    import polars as pl
+
     schema = {f"c{i}": dtypes.get(i, pl.String) for i in range(width)}
     try:
         frame = pl.read_csv(source, separator=sep, has_header=header, skip_rows=skip_lines,
@@ -131,6 +138,8 @@ def _typed_frame(source: Path | io.BytesIO, sep: str, header: bool, skip_lines: 
 def _text_frame(path: Path, source: Path | io.BytesIO, sep: str, header: bool, skip_lines: int,
                 delimiter: str, names: list[str]) -> pl.DataFrame:
     """Every column as text (the slow path that finds the bad line)."""
+    import polars as pl
+
     try:
         # All columns, not a projection: polars checks row widths only of what it parses.
         return pl.read_csv(source, separator=sep, has_header=header, skip_rows=skip_lines,

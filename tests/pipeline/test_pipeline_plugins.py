@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import pipeline_toys
@@ -44,13 +46,30 @@ def test_duplicate_component_names_name_both_plugins():
             register(pipeline_toys.make_scale())
 
     pm_first, pm_second = pipeline_toys.ToyPlugin(), Again()
-    with pytest.raises(PluginError) as info:
-        make_registry([pm_first, pm_second], entry_points_too=False)
+    registry = make_registry([pm_first, pm_second], entry_points_too=False)
+    with pytest.raises(PluginError) as info:  # raised when the kind is first looked up
+        registry.names("stages")
     message = str(info.value)
     assert "two plugins register a stage named 'toy_scale'" in message
     # both plugins are named (pluggy names a plugin object registered without a name by its id)
     assert f"'{id(pm_first)}' and '{id(pm_second)}'" in message
     assert "uninstall one" in message
+
+
+def test_a_kind_is_registered_only_when_first_looked_up():
+    """``imupipe ingest`` needs the readers: the solvers' modules (scipy, polars) stay unimported."""
+    code = (
+        "import sys\n"
+        "from imupipe.plugins import make_registry\n"
+        "r = make_registry()\n"
+        "assert 'mcap' in r.names('readers')\n"
+        "heavy = [m for m in ('imupipe.solvers.joint_ml', 'imupipe.stages.refine', 'polars',\n"
+        "                     'scipy.optimize', 'imupipe.diagnosis.residual_map') if m in sys.modules]\n"
+        "assert not heavy, heavy\n"
+        "assert 'joint_ml' in r.names('solvers')\n"
+        "assert 'imupipe.solvers.joint_ml' in sys.modules\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
 
 
 def test_two_claimants_is_an_error_naming_both(tmp_path):
