@@ -26,6 +26,10 @@ def _parser() -> argparse.ArgumentParser:
     def common(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--quiet", action="store_true", help="no progress display")
 
+    def blas(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--blas-threads", type=int, default=None, metavar="N",
+                        help="BLAS threads per process/worker (default $IMUPIPE_BLAS_THREADS, else 1)")
+
     def exports(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--export", action="append", default=[], metavar="FORMAT[,...]",
                         help="also write the calibration for other software, in DIR/<session>/"
@@ -41,6 +45,7 @@ def _parser() -> argparse.ArgumentParser:
     sp.add_argument("--pipeline", type=Path, default=None, help="pipeline TOML (default: the built-in one)")
     sp.add_argument("--out", type=Path, default=Path("imupipe-out"))
     exports(sp)
+    blas(sp)
     common(sp)
 
     sp = sub.add_parser("batch", help="calibrate every session under directories or globs")
@@ -50,6 +55,7 @@ def _parser() -> argparse.ArgumentParser:
     sp.add_argument("--executor", default="local", help="local (process pool) or dask (extra imupipe[dask])")
     sp.add_argument("--jobs", type=int, default=None, help="parallel jobs (default: number of cores)")
     exports(sp)
+    blas(sp)
     common(sp)
 
     sp = sub.add_parser("status", help="say which stages of a pipeline are stale and why")
@@ -140,7 +146,7 @@ def _cmd_run(args) -> int:
     from .pipeline.api import run_sessions
 
     for path in run_sessions(args.sessions, pipeline=args.pipeline, out=args.out, quiet=args.quiet,
-                             export=args.export):
+                             export=args.export, blas_threads=args.blas_threads):
         print(path)
     return 0
 
@@ -149,7 +155,8 @@ def _cmd_batch(args) -> int:
     from .pipeline.api import batch
 
     failures = batch(args.inputs, pipeline=args.pipeline, out=args.out, executor=args.executor,
-                     jobs=args.jobs, quiet=args.quiet, export=args.export)
+                     jobs=args.jobs, quiet=args.quiet, export=args.export,
+                     blas_threads=args.blas_threads)
     return 2 if failures else 0
 
 

@@ -27,6 +27,8 @@ from .. import __version__
 from ..errors import ImupipeError, MissingExtraError
 from ..plugins import Registry, make_registry
 from ..progress import progress
+from ..threads import blas_threads as check_blas_threads
+from ..threads import limited_blas
 from .cache import Cache, claimant, read_manifest, reader_identity, session_digest
 from .config import default_pipeline_path, load_pipeline
 from .dag import Pipeline, Ref
@@ -70,6 +72,7 @@ class Job:
     out: str
     registry: RegistrySpec = field(default_factory=RegistrySpec)
     export: tuple[str, ...] = ()  # format exporters (``--export``)
+    blas_threads: int | None = None  # None: the worker's $IMUPIPE_BLAS_THREADS, else 1
 
     def failed(self, reason: str) -> JobResult:
         return JobResult(self.session, "failed", reason)
@@ -191,19 +194,22 @@ def run_sessions(
     *,
     registry: Registry | None = None,
     export: Sequence[str] = (),
+    blas_threads: int | None = None,
 ) -> list[Path]:
     """``imupipe run``: every session in turn; a failing session does not stop the others.
 
     Returns the calibration files written; raises the first session's error
-    (naming how many failed) once all have been tried.
+    (naming how many failed) once all have been tried. BLAS runs with
+    ``blas_threads`` threads (default ``$IMUPIPE_BLAS_THREADS``, else 1; ``imupipe/threads.py``).
     """
+    check_blas_threads(blas_threads)  # a bad value fails before anything is read
     registry = registry or make_registry()
     spec = load_pipeline(pipeline, registry)  # bad config: fail before reading any data
     export = parse_formats(export, registry)
     # the same file named twice is one session
     sessions = list({Path(s).resolve(): Path(s) for s in sessions}.values())
     written, failures = [], []
-    with progress(quiet) as p:
+    with limited_blas(blas_threads), progress(quiet) as p:
         all_task = p.add_task("sessions", total=len(sessions))
         stage_task = p.add_task("stages", total=len(spec.nodes))
         for session, sid in zip(sessions, session_ids(sessions), strict=True):
@@ -242,8 +248,9 @@ def run_job(job: Job) -> JobResult:
     try:
         registry = job.registry.make()
         spec = load_pipeline(Path(job.pipeline), registry)
-        path = process_session(Path(job.session), job.session_id, spec, registry, Path(job.out),
-                               export=job.export)
+        with limited_blas(job.blas_threads):
+            path = process_session(Path(job.session), job.session_id, spec, registry, Path(job.out),
+                                   export=job.export)
         return JobResult(job.session, "ok", str(path) if path else "(no calibration exported)")
     except ImupipeError as exc:
         return job.failed(str(exc))
@@ -321,11 +328,15 @@ def batch(
     *,
     plugins: RegistrySpec | None = None,
     export: Sequence[str] = (),
+    blas_threads: int | None = None,
 ) -> list[JobResult]:
     """``imupipe batch``: each session an independent job; returns the failures.
 
-    Prints a summary table (session, status, output or reason).
+    Prints a summary table (session, status, output or reason). Each job runs
+    its BLAS with ``blas_threads`` threads (default: the worker's
+    ``$IMUPIPE_BLAS_THREADS``, else 1), so ``jobs`` workers use ``jobs`` cores.
     """
+    check_blas_threads(blas_threads)
     spec = plugins or DEFAULT_SPEC
     registry = spec.make()
     pipeline_obj = load_pipeline(pipeline, registry)  # bad config: fail before any job starts
@@ -333,7 +344,8 @@ def batch(
     runner = registry.get("executors", executor)
     sessions = expand_inputs(inputs, registry, out)
     jobs_list = [
-        Job(str(s), sid, str(pipeline_obj.path.resolve()), str(Path(out).resolve()), spec, export)
+        Job(str(s), sid, str(pipeline_obj.path.resolve()), str(Path(out).resolve()), spec, export,
+            blas_threads)
         for s, sid in zip(sessions, session_ids(sessions), strict=True)
     ]
     with progress(quiet) as p:

@@ -1,0 +1,75 @@
+"""imupipe sets its own BLAS threads (``imupipe/threads.py``): per process and per batch job."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+from pipeline_toys import TOY_SPEC
+
+from imupipe import cli
+from imupipe.errors import ConfigError
+from imupipe.pipeline import api
+from imupipe.threads import BLAS_THREADS_ENV, blas_info, blas_threads, limited_blas
+
+
+def test_thread_count_from_option_then_environment_then_one(monkeypatch):
+    monkeypatch.delenv(BLAS_THREADS_ENV, raising=False)
+    assert blas_threads() == 1
+    monkeypatch.setenv(BLAS_THREADS_ENV, "3")
+    assert blas_threads() == 3
+    assert blas_threads(2) == 2  # the option wins
+    monkeypatch.setenv(BLAS_THREADS_ENV, "many")
+    with pytest.raises(ConfigError, match=r"\$IMUPIPE_BLAS_THREADS='many': expected a positive"):
+        blas_threads()
+    with pytest.raises(ConfigError, match="--blas-threads 0"):
+        blas_threads(0)
+
+
+def test_bad_variable_is_one_line_and_status_2(monkeypatch, tmp_path, capsys):
+    monkeypatch.setenv(BLAS_THREADS_ENV, "0")
+    assert cli.main(["run", str(tmp_path / "x.mcap"), "--quiet", "--out", str(tmp_path)]) == 2
+    assert "IMUPIPE_BLAS_THREADS='0'" in capsys.readouterr().err
+
+
+def test_every_loaded_blas_is_limited_and_restored():
+    """In a fresh process with the BLAS defaults (no OPENBLAS_NUM_THREADS): one thread per core."""
+    code = (
+        "import json, numpy, scipy.linalg\n"
+        "from imupipe.threads import blas_info, limited_blas\n"
+        "count = lambda: [i['num_threads'] for i in blas_info()]\n"
+        "before = count()\n"
+        "with limited_blas() as n:\n"
+        "    inside = count()\n"
+        "print(json.dumps([n, before, inside, count()]))\n"
+    )
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", BLAS_THREADS_ENV)}
+    out = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True,
+                         text=True).stdout
+    n, before, inside, after = json.loads(out)
+    assert n == 1
+    assert len(inside) >= 2  # numpy's and SciPy's OpenBLAS are both loaded and limited
+    assert inside == [1] * len(inside)
+    assert after == before
+
+
+def test_a_batch_job_runs_under_its_limit(monkeypatch, tmp_path, toy_pipeline, session):
+    seen = []
+
+    def fake_session(*args, **kwargs):
+        seen.append(sorted({i["num_threads"] for i in blas_info()}))
+
+    monkeypatch.setattr(api, "process_session", fake_session)
+    monkeypatch.delenv(BLAS_THREADS_ENV, raising=False)
+    job = api.Job(str(session), "s1", str(toy_pipeline), str(tmp_path / "out"), TOY_SPEC)
+    assert api.run_job(job).status == "ok"
+    with limited_blas(2):  # the job's own setting wins over what the caller had
+        assert api.run_job(api.Job(*job.__dict__.values())).status == "ok"
+    assert seen == [[1], [1]]
+    assert api.run_job(api.Job(str(session), "s1", str(toy_pipeline), str(tmp_path / "out"),
+                               TOY_SPEC, blas_threads=2)).status == "ok"
+    assert seen[-1] == [2]  # threadpoolctl raises OpenBLAS's count too
