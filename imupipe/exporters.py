@@ -29,6 +29,7 @@ class CalibrationJson:
     """``out_dir/calibration.json``: the calibration tables merged, later tables win per sensor."""
 
     name = "calibration_json"
+    version = "1"  # bump when the file changes for the same tables (keys the export cache)
     filename = "calibration.json"
     writes = (filename,)
 
@@ -80,6 +81,7 @@ class ResidualMapFiles:
     from the tables of schemas ``residual_map`` and ``sample_residuals`` among the results."""
 
     name = "residual_map"
+    version = "1"
     writes = ("residual_map.json", "residuals.parquet")
 
     def export(

@@ -29,10 +29,11 @@ from ..plugins import Registry, make_registry
 from ..progress import progress
 from ..threads import blas_threads as check_blas_threads
 from ..threads import limited_blas
-from .cache import Cache, claimant, read_manifest, reader_identity, session_digest
+from .cache import Cache, claimant, distribution, read_manifest, reader_identity, session_digest
 from .config import default_pipeline_path, load_pipeline
 from .dag import Pipeline, Ref
 from .export import EXPORT_DIR, ExportError, export_formats, noise_tables, parse_formats
+from .export_cache import cacheable, export_key, in_place, run_cached, table_digests
 from .runner import SessionRun, run_session
 from .status import render, stage_states
 
@@ -146,41 +147,102 @@ def _remove(path: Path) -> None:
         path.unlink(missing_ok=True)
 
 
-def _export(run: SessionRun, registry: Registry, run_dir: Path, formats: Sequence[str] = ()
-            ) -> Path | None:
-    pipeline = run.pipeline
-    context = {
-        "session": str(run.session),
+def export_context(session: str, pipeline: Pipeline, stages: dict[str, dict],
+                   raw_units: dict[str, str] | None) -> dict:
+    """What every exporter is told besides its tables (also part of its files' cache key)."""
+    return {
+        "session": session,
         "pipeline": pipeline.name,
         "imupipe_version": __version__,
-        "skipped": run.skipped,
-        "raw_units": run.raw_units,  # stream -> unit of raw values not in SI ("counts")
+        "skipped": {k: r.get("reason", "") for k, r in stages.items() if r.get("status") == "skipped"},
+        "raw_units": dict(raw_units or {}),  # stream -> unit of raw values not in SI ("counts")
     }
-    written = None
-    calibration = {str(r): t for r in pipeline.export_calibration if (t := run.table(r)) is not None}
+
+
+def _exporters(pipeline: Pipeline, registry: Registry) -> list[tuple[str, object, tuple]]:
+    """(name, exporter, the refs of the tables it gets) of the pipeline's exports, in order."""
+    out = []
     if pipeline.export_calibration:
-        exporter = registry.get("exporters", "calibration_json")
-        written = exporter.export(calibration, context, run_dir)[0]
+        out.append(("calibration_json", registry.get("exporters", "calibration_json"),
+                    pipeline.export_calibration))
     if pipeline.export_reports:
-        tables = {str(r): t for r in pipeline.export_reports if (t := run.table(r)) is not None}
-        if "residual_map" in registry.names("exporters"):  # the map's files need no extra
-            registry.get("exporters", "residual_map").export(tables, context, run_dir)
-        if "report" in registry.names("exporters"):
-            try:
-                registry.get("exporters", "report").export(tables, context, run_dir)
-            except MissingExtraError as exc:  # the calibration stands; say how to get reports
-                warnings.warn(f"{run.session}: no report written: {exc}", stacklevel=2)
-        else:
-            log.info("no 'report' exporter is registered; skipping the reports of %s", run.session)
+        for name in ("residual_map", "report"):  # the map's files need no extra
+            if name in registry.names("exporters"):
+                out.append((name, registry.get("exporters", name), pipeline.export_reports))
+            elif name == "report":
+                log.info("no 'report' exporter is registered; skipping the reports")
+    return out
+
+
+def _export_key(name: str, exporter, refs, stages: dict, context: dict, registry: Registry) -> str:
+    return export_key(name, exporter, distribution(registry, "exporters", name),
+                      table_digests(refs, stages), context)
+
+
+def _export(run: SessionRun, registry: Registry, run_dir: Path, formats: Sequence[str] = ()
+            ) -> Path | None:
+    """Write the pipeline's exports (through the export cache) and the formats asked for."""
+    pipeline = run.pipeline
+    stages = {k: r.to_dict() for k, r in run.records.items()}
+    context = export_context(str(run.session), pipeline, stages, run.raw_units)
+    cache_root = run.cache.root
+    written = None
+    for name, exporter, refs in _exporters(pipeline, registry):
+        def tables(refs=refs):
+            return {str(r): t for r in refs if (t := run.table(r)) is not None}
+
+        key = _export_key(name, exporter, refs, stages, context, registry)
+        try:
+            paths = run_cached(name, exporter, key, tables, context, run_dir, cache_root)
+        except MissingExtraError as exc:  # the calibration stands; say how to get reports
+            if name != "report":
+                raise
+            warnings.warn(f"{run.session}: no report written: {exc}", stacklevel=2)
+            continue
+        if name == "calibration_json":
+            written = paths[0]
     # export/ always matches calibration.json: cleared on every run, then the formats asked for
     results = {}
     if formats:
+        calibration = {str(r): t for r in pipeline.export_calibration
+                       if (t := run.table(r)) is not None}
         context = {**context, "stream_facts": run.stream_facts, "device": pipeline.device}
         noise = {f"{k}.{p}": run.table(Ref(k, p)) for k, node in pipeline.nodes.items()
                  for p, sid in node.stage.outputs.items() if sid == "noise"}
         results = {**calibration, **noise_tables({k: t for k, t in noise.items() if t is not None})}
     export_formats(formats, results, context, run_dir, registry)
     return written
+
+
+def up_to_date(session: Path, session_id: str, pipeline: Pipeline, registry: Registry, out: Path
+               ) -> Path | None:
+    """The calibration.json of a session with nothing to recompute or rewrite, else None.
+
+    Nothing to recompute: its last run (run.json, no error, the same pipeline file)
+    has every stage fresh or skipped (``imupipe status``), and every export's files
+    are in the session folder as made from the same tables (``export_cache``).
+    Decided from the session's digest and the run manifest; no table is read.
+    """
+    run_dir = Path(out) / session_id
+    manifest = read_manifest(run_dir / MANIFEST)
+    if not manifest or manifest.get("error") or not pipeline.export_calibration:
+        return None
+    if (manifest.get("pipeline") or {}).get("path") != str(Path(pipeline.path).resolve()):
+        return None
+    cache = Cache(Path(out) / CACHE_DIR)
+    states = stage_states(pipeline, Path(session), manifest, cache,
+                          *_reader_now(Path(session), pipeline, registry))
+    if any(s.state not in ("fresh", "skipped") for s in states):
+        return None
+    stages = manifest.get("stages") or {}
+    context = export_context(str(session), pipeline, stages, manifest.get("raw_units"))
+    for name, exporter, refs in _exporters(pipeline, registry):
+        if not cacheable(exporter):
+            return None
+        key = _export_key(name, exporter, refs, stages, context, registry)
+        if in_place(run_dir, name, key) is None:
+            return None
+    return run_dir / CALIBRATION
 
 
 # --------------------------------------------------------------------------- run
@@ -332,7 +394,8 @@ def batch(
 ) -> list[JobResult]:
     """``imupipe batch``: each session an independent job; returns the failures.
 
-    Prints a summary table (session, status, output or reason). Each job runs
+    Prints a summary table (session, status, output or reason). A session with
+    nothing to recompute or rewrite (``up_to_date``) is not dispatched. Each job runs
     its BLAS with ``blas_threads`` threads (default: the worker's
     ``$IMUPIPE_BLAS_THREADS``, else 1), so ``jobs`` workers use ``jobs`` cores.
     """
@@ -348,10 +411,27 @@ def batch(
             blas_threads)
         for s, sid in zip(sessions, session_ids(sessions), strict=True)
     ]
+    # a session with nothing to recompute or rewrite is not sent to a worker at all
+    results: list[JobResult | None] = [None] * len(jobs_list)
+    if not export:
+        for i, job in enumerate(jobs_list):
+            try:
+                done = up_to_date(Path(job.session), job.session_id, pipeline_obj, registry, out)
+            except ImupipeError:
+                done = None  # the job says what is wrong
+            if done is not None:
+                results[i] = JobResult(job.session, "ok", str(done))
+    todo = [i for i, r in enumerate(results) if r is None]
+    if len(todo) < len(jobs_list):
+        log.info("%d of %d sessions are up to date", len(jobs_list) - len(todo), len(jobs_list))
     with progress(quiet) as p:
         task = p.add_task(f"sessions ({executor})", total=len(jobs_list))
+        p.advance(task, len(jobs_list) - len(todo))
         kwargs = {"on_result": lambda *_: p.advance(task)} if _takes_on_result(runner) else {}
-        results = runner.map(run_job, jobs_list, jobs, **kwargs)
+        if todo:
+            ran = runner.map(run_job, [jobs_list[i] for i in todo], jobs, **kwargs)
+            for i, r in zip(todo, ran, strict=True):
+                results[i] = r
     print(summary(results))
     return [r for r in results if r.status != "ok"]
 

@@ -106,6 +106,7 @@ class ReportExporter:
     """Writes ``out_dir/report.md`` and ``out_dir/figures/*.png``."""
 
     name = "report"
+    version = "1"  # bump when the report or a figure changes for the same tables (export cache)
     writes = ("report.md", "figures")
 
     def export(self, results: Mapping[str, pa.Table], context: Mapping[str, Any], out_dir: Path) -> list[Path]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 from pipeline_toys import TOY_PIPELINE, write_session
 
@@ -165,6 +166,9 @@ def test_unreadable_cache_entry_is_a_clear_error(tmp_path, toy_registry, toy_pip
     _run(toy_registry()[0], session, toy_pipeline, out)
     key = read_manifest(out / "s1" / "run.json")["stages"]["gyro"]["key"]
     (out / CACHE_DIR / key[:2] / key / "calibration.arrow").write_bytes(b"truncated")
+    # exported files are cached artefacts too: make the rerun need the table itself
+    (out / "s1" / "calibration.json").unlink()
+    shutil.rmtree(out / CACHE_DIR / "exports")
     with pytest.raises(ImupipeError, match=r"cached output is unreadable .* delete .* and rerun"):
         _run(toy_registry()[0], session, toy_pipeline, out)
     assert not (out / "s1" / "calibration.json").exists()
