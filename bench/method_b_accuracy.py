@@ -17,7 +17,9 @@ Errors, RMS over seeds, gauge-free (``imupipe.sim.compare``):
 - gyro alignment: angle between the gyro's and the accelerometer's ``Q``, deg.
 
 The noise bound is the same metric for draws from N(truth, CRB), the Cramer-Rao
-bound of white noise at the truth (``JointProblem.covariance``).
+bound of the joint model linearised at the truth (``joint_ml.covariance_at_start``:
+white noise of the rests and turns, and the bias walks the estimator assumes, their
+intensities estimated from the rests as ``joint_ml`` does).
 
 Part 2 (Monte Carlo): white-noise gimbal sessions (no quantisation); per
 parameter the joint estimator's empirical RMS error over seeds divided by
@@ -45,8 +47,7 @@ from imupipe.solvers.joint_ml import (
     JointML,
     JointMLParams,
     JointObservations,
-    JointProblem,
-    fits_temperature,
+    covariance_at_start,
     lower_gauge,
 )
 from imupipe.stages.segment import SegmentParams, segment
@@ -121,22 +122,19 @@ def metrics(Ma, ba, Mg, bg, truth) -> dict[str, float]:
             "gyro_shape_ppm": e["gyro"].shape_ppm, "gyro_align_deg": e.gyro_accel_align_deg}
 
 
-def truth_problem(rests: Rests, turns: Turns, g: float, truth) -> JointProblem:
-    """The joint likelihood at the truth, in the lower-triangular gauge, with the parameters
-    the estimator fits (k when the rests span 2 degC, as ``joint_ml``'s ``auto``)."""
-    L, Q = lower_gauge(truth["accel"].S)
-    fit_k = fits_temperature(rests, "auto")
-    return JointProblem(rests, turns, g, L, truth["accel"].b0, Q @ truth["gyro"].M, truth["gyro"].b0,
-                        truth["accel"].k, truth["gyro"].k, fit_k=fit_k)
+def truth_bound(rests: Rests, turns: Turns, g: float, truth, keep_frame: bool = True) -> np.ndarray:
+    """(24, 24) Cramer-Rao bound of ``(M_a.ravel(), b_a, M_g.ravel(), b_g)``: the joint model
+    linearised at the truth, with the parameters the estimator fits (k when the rests span
+    2 degC, as ``joint_ml``'s ``auto``); in the truth's frame, or the lower-triangular gauge."""
+    obs = JointObservations(rests, turns, g, truth["accel"], truth["gyro"])
+    return covariance_at_start(obs, JointMLParams(keep_frame=keep_frame))[:24, :24]
 
 
-def bound_metrics(prob: JointProblem, truth, rng, n_draw: int = 300) -> dict[str, list[float]]:
-    """Metrics of draws from N(truth, CRB): what an efficient estimator would show."""
-    cov = prob.covariance(prob.x0)[:24, :24]
-    x0 = prob.x0
-    S_a, b_a, M_g, b_g, *_ = prob.unpack(x0)
-    M_a = np.linalg.inv(S_a)
-    t = np.concatenate([M_a.ravel(), b_a, M_g.ravel(), b_g])
+def bound_metrics(cov: np.ndarray, truth, rng, n_draw: int = 300) -> dict[str, list[float]]:
+    """Metrics of draws from N(truth, CRB) (``cov`` in the truth's frame): what an efficient
+    estimator would show."""
+    a, gy = truth["accel"], truth["gyro"]
+    t = np.concatenate([a.M.ravel(), a.b0, gy.M.ravel(), gy.b0])
     w, V = np.linalg.eigh(cov)
     draws = t + (rng.normal(size=(n_draw, 24)) * np.sqrt(np.clip(w, 0, None))) @ V.T
     out: dict[str, list[float]] = {k: [] for k in TARGETS}
@@ -167,7 +165,7 @@ def table(protocols: list[str], seeds: int) -> None:
             for name, (acc, gyr) in answers.items():
                 for k, v in metrics(acc.M, acc.b0, gyr.M, gyr.b0, truth).items():
                     rows.setdefault(name, {}).setdefault(k, []).append(v)
-            for k, v in bound_metrics(truth_problem(rests, turns, g, truth), truth, rng).items():
+            for k, v in bound_metrics(truth_bound(rests, turns, g, truth), truth, rng).items():
                 rows.setdefault("noise bound (CRB)", {}).setdefault(k, []).extend(v)
         print(f"\n{protocol}: {seeds} seeds, {len(rests)} rests, {len(turns)} turns per session "
               f"({time.perf_counter() - t0:.0f} s); RMS over seeds")
@@ -189,8 +187,7 @@ def monte_carlo(n: int) -> None:
         t = np.concatenate([np.linalg.inv(L).ravel(), truth["accel"].b0, (Q @ truth["gyro"].M).ravel(),
                             truth["gyro"].b0])
         errs.append(np.concatenate([a.M.ravel(), a.b0, gy.M.ravel(), gy.b0]) - t)
-        prob = truth_problem(rests, turns, g, truth)
-        crb.append(np.diag(prob.covariance(prob.x0))[:24])
+        crb.append(np.diag(truth_bound(rests, turns, g, truth, keep_frame=False)))
     bound = np.sqrt(np.mean(crb, axis=0))
     rms = np.sqrt(np.mean(np.square(errs), axis=0))
     free = bound > 1e-12
