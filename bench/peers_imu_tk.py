@@ -20,12 +20,26 @@ refinement. Prints:
    ``bias = adjacent_rests`` (each turn uses its two rests' mean: this unit's gyro
    bias wanders between rests by ~5 counts, 4x the noise of a rest mean) is shown too;
 3. imupipe's calibration time (segmentation + solvers, best of ``repeat``) beside
-   imu_tk's 1.0 s.
+   imu_tk's 1.0 s;
+4. whole processes as a user runs them, best of ``repeat`` (each in a fresh output
+   folder, nothing cached): ``imupipe run`` with ``pipelines/imu_tk.toml`` without its
+   report (calibration only), with it, and the default pipeline (the SI manifest),
+   beside imu_tk's ``test_imu_calib`` on the same two files: run here when
+   ``$IMU_TK_BIN`` names a built ``test_imu_calib``, else its published 1.0 s. Wall,
+   CPU and peak memory of each, and the ratios (targets: <= 1.0x without the report,
+   <= 1.5x with it).
+
+``--process-only`` prints section 4 alone.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -43,6 +57,9 @@ from imupipe.stages.segment import SegmentParams, segment
 
 REPO = Path(__file__).resolve().parents[1]
 SESSION = REPO / "examples" / "sessions" / "imu_tk_xsens.toml"
+SESSION_SI = REPO / "examples" / "sessions" / "imu_tk_xsens_si.toml"
+DATA = REPO.parent / "shared" / "data" / "imu_tk_xsens"
+IMU_TK_BIN_ENV = "IMU_TK_BIN"
 G = 9.81744
 SEGMENT = SegmentParams(window_s=1.0, initial_rest_s=50.0, accel_threshold=4.0, gyro_threshold=4.0,
                         min_rest_s=2.0)
@@ -113,11 +130,75 @@ def split(rests: Rests, turns: Turns, every: int):
     return rests.subset(cal_rest), cal_turns, turns.subset(ctl_turn)
 
 
+def measure(cmd: list[str], repeat: int, fresh: Path | None = None) -> dict[str, float]:
+    """Best of ``repeat`` runs of ``cmd``: wall s, CPU s (user + sys of the child), peak MiB.
+
+    ``fresh``: a folder emptied before every run (the output folder: nothing cached).
+    """
+    best: dict[str, float] = {}
+    for _ in range(repeat):
+        if fresh is not None:
+            shutil.rmtree(fresh, ignore_errors=True)
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        err = proc.stderr.read()
+        if os.waitstatus_to_exitcode(status):
+            sys.exit(f"{' '.join(map(str, cmd))} failed:\n{err}")
+        run = {"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "mib": usage.ru_maxrss / 1024}
+        if not best or run["wall"] < best["wall"]:
+            best = run
+    return best
+
+
+def whole_process(repeat: int) -> None:
+    """Section 4: ``imupipe run`` as whole processes beside imu_tk's test program."""
+    tmp = Path(tempfile.mkdtemp(prefix="imupipe-peers-imu_tk-"))
+    try:
+        without_report = tmp / "imu_tk_no_report.toml"
+        text = (REPO / "pipelines" / "imu_tk.toml").read_text()
+        without_report.write_text("\n".join(line for line in text.splitlines()
+                                            if not line.startswith("reports = ")) + "\n")
+        imupipe = [sys.executable, "-m", "imupipe", "run", "--quiet", "--out", str(tmp / "out")]
+        rows = {
+            "imu_tk.toml without report": measure(
+                [*imupipe, str(SESSION), "--pipeline", str(without_report)], repeat, tmp / "out"),
+            "imu_tk.toml with report": measure(
+                [*imupipe, str(SESSION), "--pipeline", str(REPO / "pipelines" / "imu_tk.toml")],
+                repeat, tmp / "out"),
+            "default pipeline (SI manifest)": measure([*imupipe, str(SESSION_SI)], repeat, tmp / "out"),
+        }
+        binary = os.environ.get(IMU_TK_BIN_ENV)
+        if binary:
+            ref = measure([binary, str(DATA / "xsens_acc.mat"), str(DATA / "xsens_gyro.mat")], repeat)
+            source = f"imu_tk {binary} run here"
+        else:
+            # its test program runs on one core: the published time stands for its CPU too
+            ref = {"wall": IMU_TK_SECONDS, "cpu": IMU_TK_SECONDS, "mib": float("nan")}
+            source = (f"imu_tk's published {IMU_TK_SECONDS} s, wall and CPU (set ${IMU_TK_BIN_ENV} "
+                      "to a built test_imu_calib to run it here)")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    print(f"\n4. Whole process, best of {repeat} (fresh output folder, nothing cached), vs {source}")
+    print(f"   {'':40s} {'wall s':>7s} {'CPU s':>7s} {'peak MiB':>8s} {'wall ratio':>10s} {'CPU ratio':>9s}")
+    print(f"   {'imu_tk test_imu_calib':40s} {ref['wall']:7.2f} {ref['cpu']:7.2f} {ref['mib']:8.0f}")
+    targets = {"imu_tk.toml without report": 1.0, "imu_tk.toml with report": 1.5}
+    for name, r in rows.items():
+        target = f"  (target <= {targets[name]}x)" if name in targets else ""
+        print(f"   {'imupipe ' + name:40s} {r['wall']:7.2f} {r['cpu']:7.2f} {r['mib']:8.0f} "
+              f"{r['wall'] / ref['wall']:9.2f}x {r['cpu'] / ref['cpu']:8.2f}x{target}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--every", type=int, default=4)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--process-only", action="store_true", help="only section 4 (whole processes)")
     args = ap.parse_args()
+    if args.process_only:
+        whole_process(args.repeat)
+        return
     t = time.perf_counter()
     dev = read_recording(SESSION, make_registry()).device()
     t_read = time.perf_counter() - t
@@ -186,6 +267,7 @@ def main() -> None:
     for joint, label in ((False, "method B"), (True, "method B + joint refinement")):
         print(f"   imupipe {label:28s} {timings[joint][0]:.2f} s = {timings[joint][0] / IMU_TK_SECONDS:.2f}x "
               f"imu_tk's {IMU_TK_SECONDS} s")
+    whole_process(args.repeat)
 
 
 if __name__ == "__main__":
