@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.linalg import cho_solve_banded, cholesky_banded
-from scipy.optimize import minimize_scalar
 
 _GRID = np.linspace(-4.0, 10.0, 15)  # log10 of q L / (median white variance of a mean)
 _NU_GRID = np.linspace(-1.0, 5.0, 7)  # log10 of the extra rest scatter / the same
@@ -166,6 +165,8 @@ def estimate_intensity(t_start: np.ndarray, t_end: np.ndarray, resid: np.ndarray
     nu = float(nus[j])
     if i == 0 or C[0].min() - C[i, j] < MIN_LR:
         return 0.0, float(nus[np.argmin(C[0])])
+    from scipy.optimize import minimize_scalar  # here: importing scipy.optimize costs ~0.25 s
+
     x = np.log10(qs[i] * span / v0)
     res = minimize_scalar(lambda x: cost(v0 / span * 10.0**x, nu), bounds=(x - 0.5, x + 0.5),
                           method="bounded", options={"xatol": 0.01})

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pyarrow as pa
@@ -20,12 +21,13 @@ from pydantic import Field
 
 from .. import schemas
 from ..components import BoundSolver, Params, Stage
-from ..diagnosis.evaluate import Event, evaluate
-from ..diagnosis.residual_map import residual_map
 from ..models import Calibration
 from ..observations import Rests, Turns
 from .refine import STANDARD_GRAVITY, temperature_stream
 from .segment import xyz
+
+if TYPE_CHECKING:
+    from ..diagnosis.evaluate import Event
 
 MAP_KEY = b"imupipe.residual_map"
 
@@ -40,6 +42,8 @@ class MapParams(Params):
 
 
 def _events(table: pa.Table | None) -> list[Event]:
+    from ..diagnosis.evaluate import Event
+
     if table is None:
         return []
     cols = set(table.column_names)
@@ -52,6 +56,10 @@ def _events(table: pa.Table | None) -> list[Event]:
 
 
 def map_residuals(inputs: Mapping[str, pa.Table], params: MapParams, solver: BoundSolver | None) -> dict:
+    # the diagnosis (SciPy's stats, ruptures) is imported when the map is drawn, not when registered
+    from ..diagnosis.evaluate import evaluate
+    from ..diagnosis.residual_map import residual_map
+
     rests = Rests.from_table(inputs["rests"])
     turns = Turns.from_tables(inputs["turns"], inputs["gyro"], rests.t0_ns)
     cal = Calibration.from_tables(inputs["calibration"])

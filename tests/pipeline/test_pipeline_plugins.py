@@ -68,6 +68,12 @@ def test_a_kind_is_registered_only_when_first_looked_up():
         "assert not heavy, heavy\n"
         "assert 'joint_ml' in r.names('solvers')\n"
         "assert 'imupipe.solvers.joint_ml' in sys.modules\n"
+        "for kind in ('stages', 'exporters', 'executors', 'effects'):\n"
+        "    r.names(kind)\n"
+        "# every component registered: what only running them needs is still not imported\n"
+        "heavy = [m for m in ('scipy.stats', 'ruptures', 'matplotlib', 'distributed',\n"
+        "                     'imupipe.diagnosis.residual_map') if m in sys.modules]\n"
+        "assert not heavy, heavy\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
 
