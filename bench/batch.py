@@ -64,7 +64,8 @@ def main() -> None:
             if not path.exists():
                 subprocess.run([*imupipe, "simulate", "standard", "--param",
                                 f"n_positions={args.n_positions}", "--param", "warmup_s=60",
-                                "--seed", str(seed), "--out", str(path), "--quiet"], check=True)
+                                "--seed", str(seed), "--out", str(path), "--quiet"], check=True,
+                               stdout=subprocess.DEVNULL)
         changed = work / "changed.toml"
         text = (REPO / "pipelines" / "default.toml").read_text()
         assert "tolerance_deg = 0.1" in text, "the default pipeline's validate.tolerance_deg moved"
