@@ -107,7 +107,29 @@ class ResidualMapFiles:
         return written
 
 
-COMPONENTS: list = [CalibrationJson(), ResidualMapFiles()]
+class DiagnosisJson:
+    """``out_dir/diagnosis.json`` (``spec/contracts.md``) from the table of schema ``diagnosis``."""
+
+    name = "diagnosis"
+    writes = ("diagnosis.json",)
+
+    def export(
+        self, results: Mapping[str, pa.Table], context: Mapping[str, Any], out_dir: Path
+    ) -> list[Path]:
+        from . import schemas
+
+        written = []
+        for table in results.values():
+            if schemas.schema_of(table) == "diagnosis":
+                doc = json.loads(table.schema.metadata[b"imupipe.diagnosis"])
+                doc["session"] = str(context.get("session", doc.get("session", "")))
+                path = Path(out_dir) / "diagnosis.json"
+                write_text(path, json.dumps(doc, indent=1) + "\n")
+                written.append(path)
+        return written
+
+
+COMPONENTS: list = [CalibrationJson(), ResidualMapFiles(), DiagnosisJson()]
 
 
 @hookimpl
