@@ -318,6 +318,8 @@ def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR) -> dict:
         kind = {"accel_rest": "rest", "gyro_rest": "rest", "turn": "motion", "accel_motion": "motion"}.get(name, "prior")
         blocks.append({"block": name, "sensor": sensor, "kind": kind, "chi2": b["chi2"], "dof": b["dof"],
                        "chi2_per_dof": b["chi2_per_dof"], "rows": b["rows"]})
+        if name in ev.white_chi2 and b["dof"] > 0:  # before the recording's own (coloured) noise model
+            blocks[-1]["chi2_per_dof_white"] = ev.white_chi2[name] / b["dof"]
     sc = noise_rs
     for sensor in np.unique(sc.sensor):
         m = sc.sensor == sensor
