@@ -126,7 +126,19 @@ class DiagnosisJson:
                 path = Path(out_dir) / "diagnosis.json"
                 write_text(path, json.dumps(doc, indent=1) + "\n")
                 written.append(path)
+                written += self._terms_into_calibration(doc, Path(out_dir) / "calibration.json")
         return written
+
+    @staticmethod
+    def _terms_into_calibration(doc: dict, path: Path) -> list[Path]:
+        """The accepted terms join ``calibration.json`` as ``model_terms`` (effects.md names)."""
+        if not path.exists():
+            return []
+        cal = json.loads(path.read_text())
+        cal["model_terms"] = [{"effect": f["effect"], "sensor": f["sensor"], "parameters": f["parameters"]}
+                              for f in doc["findings"] if f["effect"] != "unknown"]
+        write_text(path, json.dumps(cal, indent=1) + "\n")
+        return [path]
 
 
 COMPONENTS: list = [CalibrationJson(), ResidualMapFiles(), DiagnosisJson()]

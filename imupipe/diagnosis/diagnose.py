@@ -51,7 +51,8 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
     for t in tested:
         c = t.candidate
         tested_doc.append({"effect": c.effect, "sensor": c.sensor, "regime": c.regime, **c.fixed,
-                           "visible_fraction": t.visible, "minimum_detectable": t.mde})
+                           "parameters": c.names, "visible_fraction": t.visible, "minimum_detectable": t.mde,
+                           "information": (t.projected.T @ t.projected).tolist()})
     present = {t.candidate.effect for t in tested}
     untested = [{"effect": e, "reason": why} for e, why in UNTESTED.items() if e in effects and e not in present]
     untested += [{"effect": e, "reason": "this recording has no rows its term acts on"}

@@ -48,6 +48,10 @@ def test_a_concealed_lever_arm_is_named_fitted_and_proved_on_held_out_motions(tm
     assert f["significance"]["p_value"] < 1e-6 and f["significance"]["delta_bic"] < 0
     assert f["windows"] and f["explanation"]
     assert not [g for g in doc["findings"] if g["effect"] not in ("lever_arm", "unknown")]
+    cal = json.loads((tmp_path / "out" / "gimbal-lever_arm" / "calibration.json").read_text())
+    assert [t["effect"] for t in cal["model_terms"]] == ["lever_arm"]
+    report = (tmp_path / "out" / "gimbal-lever_arm" / "report.md").read_text()
+    assert "**lever_arm**" in report and "diagnosis_heldout.png" in report
 
 
 def test_diagnose_stays_quiet_without_omitted_physics(tmp_path):
