@@ -308,8 +308,10 @@ def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR) -> dict:
     all_cells = cells(model_rs) + cells(noise_rs)
     p = np.array([c.p_value for c in all_cells])
     flagged = benjamini_hochberg(p, q)
+    # flagged first, by the misfit they carry (chi2 - dof: a log-likelihood excess; p-values
+    # underflow to 0 for every strong cell), then the rest by p-value
     order = sorted(range(len(all_cells)),
-                   key=lambda i: (not flagged[i], p[i], -all_cells[i].chi2_per_dof))
+                   key=lambda i: (not flagged[i], -(all_cells[i].chi2 - all_cells[i].dof) if flagged[i] else p[i]))
     blocks = []
     for name, b in ev.lin.blocks().items():
         sensor = {"walk_gyro": "gyro", "walk_accel": "accel", "k_prior": "prior"}.get(name, name.split("_")[0])
