@@ -134,7 +134,7 @@ def _export_names(pipeline: Pipeline, registry: Registry) -> list[str]:
     if pipeline.export_calibration:
         names.append(CALIBRATION)
     if pipeline.export_reports:
-        for name in ("report", "residual_map"):
+        for name in ("report", "residual_map", "diagnosis"):
             if name in registry.names("exporters"):
                 names += getattr(registry.get("exporters", name), "writes", ())
     return names
@@ -166,7 +166,7 @@ def _exporters(pipeline: Pipeline, registry: Registry) -> list[tuple[str, object
         out.append(("calibration_json", registry.get("exporters", "calibration_json"),
                     pipeline.export_calibration))
     if pipeline.export_reports:
-        for name in ("residual_map", "report"):  # the map's files need no extra
+        for name in ("residual_map", "diagnosis", "report"):  # the first two need no extra
             if name in registry.names("exporters"):
                 out.append((name, registry.get("exporters", name), pipeline.export_reports))
             elif name == "report":
@@ -257,8 +257,10 @@ def run_sessions(
     registry: Registry | None = None,
     export: Sequence[str] = (),
     blas_threads: int | None = None,
+    diagnose: bool = False,
 ) -> list[Path]:
     """``imupipe run``: every session in turn; a failing session does not stop the others.
+    ``diagnose``: the pipeline's residual map stage runs as the diagnosis (``imupipe diagnose``).
 
     Returns the calibration files written; raises the first session's error
     (naming how many failed) once all have been tried. BLAS runs with
@@ -266,7 +268,7 @@ def run_sessions(
     """
     check_blas_threads(blas_threads)  # a bad value fails before anything is read
     registry = registry or make_registry()
-    spec = load_pipeline(pipeline, registry)  # bad config: fail before reading any data
+    spec = load_pipeline(pipeline, registry, diagnose=diagnose)  # bad config: fail before reading data
     export = parse_formats(export, registry)
     # the same file named twice is one session
     sessions = list({Path(s).resolve(): Path(s) for s in sessions}.values())
