@@ -42,8 +42,8 @@ class _ByKind(dict):
                 raise
         return super().__getitem__(kind)
 
-    def get(self, kind, default=None):  # noqa: D102 - dict.get bypasses __getitem__
-        return self[kind] if kind in self else default
+    def get(self, kind, default=None):  # dict.get would bypass __getitem__ (no loading)
+        return self[kind] if kind in self else default  # noqa: SIM401
 
 
 @dataclass

@@ -45,7 +45,7 @@ def _with_reports(toy_pipeline):
 def test_warm_run_rewrites_no_export_and_restores_deleted_ones(
         tmp_path, toy_registry, toy_pipeline, session):
     report = CountingReport()
-    registry, counter = toy_registry(report)
+    registry, _ = toy_registry(report)
     pipeline, out = _with_reports(toy_pipeline), tmp_path / "out"
     run_sessions([session], pipeline, out, quiet=True, registry=registry)
     files = [out / "s1" / n for n in ("calibration.json", "report.md", "figures/a.png")]
