@@ -18,7 +18,10 @@ nothing heavy itself, so the floor a forked child inherits stays small (printed)
 BLAS runs with imupipe's default (one thread, ``imupipe/threads.py``). Wall clock
 suffers when other processes share the cores; CPU is the steadier measure of work.
 
-Usage: ``python bench/scaling.py [--hours 0.5 1 2 4] [--keep DIR]``
+``--pipeline FILE`` runs another pipeline; ``--without-map`` runs the default one
+without the residual map stage (the calibration's own cost).
+
+Usage: ``python bench/scaling.py [--hours 0.5 1 2 4] [--keep DIR] [--pipeline FILE | --without-map]``
 """
 
 from __future__ import annotations
@@ -79,6 +82,24 @@ def measure(cmd: list[str], **kw) -> dict:
             "stdout": out}
 
 
+def without_map(path: Path) -> Path:
+    """A copy of the default pipeline without the ``map`` stage and its exports."""
+    lines, skip = [], False
+    text = (Path(__file__).resolve().parents[1] / "pipelines" / "default.toml").read_text()
+    for line in text.splitlines():
+        if line.startswith("[stages.map"):
+            skip = True
+            continue
+        if skip and line.startswith("["):
+            skip = False
+        if not skip:
+            lines.append(line)
+    out = "\n".join(lines).replace(', "map.map", "map.samples"', "") + "\n"
+    assert "map." not in out.split("[export]")[1], "the default pipeline's map exports moved"
+    path.write_text(out)
+    return path
+
+
 def slope(xs: list[float], ys: list[float]) -> float:
     """Least-squares slope of log y against log x."""
     lx, ly = [math.log(x) for x in xs], [math.log(y) for y in ys]
@@ -90,9 +111,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--hours", type=float, nargs="+", default=[0.5, 1.0, 2.0, 4.0])
     ap.add_argument("--keep", type=Path, default=None, help="keep sessions and outputs here")
+    ap.add_argument("--pipeline", type=Path, default=None, help="pipeline TOML (default: the built-in)")
+    ap.add_argument("--without-map", action="store_true",
+                    help="the default pipeline without its residual map stage")
     args = ap.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="imupipe-scaling-"))
     work.mkdir(parents=True, exist_ok=True)
+    pipeline = ["--pipeline", str(args.pipeline)] if args.pipeline else []
+    if args.without_map:
+        pipeline = ["--pipeline", str(without_map(work / "default_without_map.toml"))]
     env = dict(os.environ)
     imupipe = [sys.executable, "-m", "imupipe"]
     rows = []
@@ -110,7 +137,8 @@ def main() -> None:
             arrays = int(measure([sys.executable, "-c", ARRAYS, str(tables)])["stdout"])
             out = work / f"out_{hours:g}h"
             shutil.rmtree(out, ignore_errors=True)
-            run = measure([*imupipe, "run", str(session), "--out", str(out), "--quiet"], env=env)
+            run = measure([*imupipe, "run", str(session), "--out", str(out), "--quiet", *pipeline],
+                          env=env)
             manifest = json.loads((out / session.stem / "run.json").read_text())
             stages = sorted(((v.get("seconds") or 0.0, k) for k, v in manifest["stages"].items()),
                             reverse=True)[:3]
@@ -123,7 +151,8 @@ def main() -> None:
             shutil.rmtree(work, ignore_errors=True)
 
     floor = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-    print(f"imupipe run / ingest as whole processes, standard sessions at 100 Hz "
+    print(f"imupipe run {' '.join(pipeline) or '(default pipeline)'} / ingest as whole processes, "
+          "standard sessions at 100 Hz "
           f"(this script's own peak RSS, the floor of a child's: {floor / MIB:.0f} MiB)")
     print(f"{'hours':>5} {'n_pos':>5} {'min':>4} {'ingest CPU':>10} {'wall':>6} {'MiB':>5} | {'run CPU':>8} "
           f"{'wall':>7} {'peak MiB':>8} | {'run/ingest':>10} {'arrays MiB':>10} {'mem target':>10} | "
