@@ -94,8 +94,9 @@ class DaskExecutor:
     The local cluster has ``jobs`` worker processes of one thread each and is
     closed when the batch ends. Its workers start without Dask's
     ``MALLOC_TRIM_THRESHOLD_=65536`` (returning freed memory to the OS that eagerly
-    made the solvers' many temporary arrays page-fault again: 1.4-1.9x slower);
-    a value the user exported is kept. Dask's own log lines below warnings are
+    made the solvers' many temporary arrays page-fault again: 1.4-1.9x slower;
+    a value the user exported is kept), nor the workers' statistical profiler and
+    GIL monitor (for the dashboard, which a batch does not show). Dask's own log lines below warnings are
     not shown unless imupipe's logger is set to INFO or DEBUG.
     """
 
@@ -156,7 +157,13 @@ def _dask_config():
     """Dask's defaults minus what slows imupipe's workers (see ``DaskExecutor``)."""
     import dask
 
-    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+    with dask.config.set({
+        "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+        # the workers' statistical profiler (a stack sample every 10 ms) and GIL monitor
+        # are for Dask's dashboard, which a batch does not show
+        "distributed.worker.profile.enabled": False,
+        "distributed.admin.system-monitor.gil.enabled": False,
+    }):
         yield
 
 
