@@ -1,7 +1,7 @@
 """Command line (``spec/contracts.md``): thin; parses, delegates, shows progress.
 
 Exit status: 0 success, 2 bad usage or bad input (one line naming the file and
-what is wrong), 1 internal failure.
+what is wrong), 1 internal failure, 3 with ``--strict`` when a verdict is warn or fail.
 """
 
 from __future__ import annotations
@@ -26,6 +26,10 @@ def _parser() -> argparse.ArgumentParser:
     def common(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--quiet", action="store_true", help="no progress display")
 
+    def strict(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--strict", action="store_true",
+                        help="exit status 3 when a calibration's verdict is warn or fail")
+
     def exports(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--export", action="append", default=[], metavar="FORMAT[,...]",
                         help="also write the calibration for other software, in DIR/<session>/"
@@ -41,6 +45,7 @@ def _parser() -> argparse.ArgumentParser:
     sp.add_argument("--pipeline", type=Path, default=None, help="pipeline TOML (default: the built-in one)")
     sp.add_argument("--out", type=Path, default=Path("imupipe-out"))
     exports(sp)
+    strict(sp)
     common(sp)
 
     sp = sub.add_parser("batch", help="calibrate every session under directories or globs")
@@ -50,6 +55,7 @@ def _parser() -> argparse.ArgumentParser:
     sp.add_argument("--executor", default="local", help="local (process pool) or dask (extra imupipe[dask])")
     sp.add_argument("--jobs", type=int, default=None, help="parallel jobs (default: number of cores)")
     exports(sp)
+    strict(sp)
     common(sp)
 
     sp = sub.add_parser("status", help="say which stages of a pipeline are stale and why")
@@ -138,19 +144,25 @@ def _cmd_plugins(args) -> int:
 
 def _cmd_run(args) -> int:
     from .pipeline.api import run_sessions
+    from .verdict import read_verdict, strict_failure, verdict_lines
 
+    verdicts = []
     for path in run_sessions(args.sessions, pipeline=args.pipeline, out=args.out, quiet=args.quiet,
                              export=args.export):
+        verdicts.append(read_verdict(path))
         print(path)
-    return 0
+        print("\n".join(verdict_lines(verdicts[-1])))
+    return 3 if args.strict and strict_failure(verdicts) else 0
 
 
 def _cmd_batch(args) -> int:
     from .pipeline.api import batch
 
     failures = batch(args.inputs, pipeline=args.pipeline, out=args.out, executor=args.executor,
-                     jobs=args.jobs, quiet=args.quiet, export=args.export)
-    return 2 if failures else 0
+                     jobs=args.jobs, quiet=args.quiet, export=args.export, strict=args.strict)
+    if any(r.status != "ok" for r in failures):
+        return 2
+    return 3 if failures else 0
 
 
 def _cmd_status(args) -> int:

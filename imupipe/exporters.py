@@ -49,6 +49,8 @@ class CalibrationJson:
                 f"{context.get('session', '?')}: the calibration tables hold no triad"
             )
         doc = with_raw_units(calibration.to_dict(), context.get("raw_units") or {})
+        if context.get("verdict") is not None:  # spec/contracts.md; imupipe.verdict
+            doc["verdict"] = dict(context["verdict"])
         path = Path(out_dir) / self.filename
         write_text(path, json.dumps(doc, indent=2) + "\n")
         return [path]

@@ -27,6 +27,7 @@ from .. import __version__
 from ..errors import ImupipeError, MissingExtraError
 from ..plugins import Registry, make_registry
 from ..progress import progress
+from ..verdict import read_verdict
 from .cache import Cache, claimant, read_manifest, reader_identity, session_digest
 from .config import default_pipeline_path, load_pipeline
 from .dag import Pipeline, Ref
@@ -80,6 +81,7 @@ class JobResult:
     session: str
     status: str  # ok | failed
     detail: str  # the calibration.json written, or why the session failed
+    verdict: str = ""  # pass | warn | fail of the calibration written (imupipe.verdict)
 
 
 # --------------------------------------------------------------------------- one session
@@ -155,6 +157,8 @@ def _export(run: SessionRun, registry: Registry, run_dir: Path, formats: Sequenc
     }
     written = None
     calibration = {str(r): t for r in pipeline.export_calibration if (t := run.table(r)) is not None}
+    if calibration:
+        context["verdict"] = run_verdict(run, calibration, context["raw_units"])
     if pipeline.export_calibration:
         exporter = registry.get("exporters", "calibration_json")
         written = exporter.export(calibration, context, run_dir)[0]
@@ -178,6 +182,32 @@ def _export(run: SessionRun, registry: Registry, run_dir: Path, formats: Sequenc
         results = {**calibration, **noise_tables({k: t for k, t in noise.items() if t is not None})}
     export_formats(formats, results, context, run_dir, registry)
     return written
+
+
+VERDICT_SCHEMAS = ("validation", "control_errors", "events", "residual_map", "rests")
+
+
+def run_verdict(run: SessionRun, calibration: dict, raw_units: dict) -> dict:
+    """``verdict.judge`` on what the run produced: the calibration as exported, every output
+    of a schema the checks read (the reports' rests first), and the streams' facts."""
+    from ..exporters import with_raw_units
+    from ..models import Calibration
+    from ..schemas import schema_of
+    from ..verdict import judge
+
+    doc = with_raw_units(Calibration.from_tables(*calibration.values()).to_dict(), raw_units)
+    tables = {str(r): t for r in run.pipeline.export_reports
+              if (t := run.table(r)) is not None and schema_of(t) == "rests"}
+    for name, node in run.pipeline.nodes.items():
+        for port, sid in node.stage.outputs.items():
+            ref = Ref(name, port)
+            if sid in VERDICT_SCHEMAS and sid != "rests" and (t := run.table(ref)) is not None:
+                tables[str(ref)] = t
+    if not any(schema_of(t) == "rests" for t in tables.values()):
+        tables.update({f"{n}.{p}": t for n, node in run.pipeline.nodes.items()
+                       for p, sid in node.stage.outputs.items()
+                       if sid == "rests" and (t := run.table(Ref(n, p))) is not None})
+    return judge(doc, tables, run.stream_facts)
 
 
 # --------------------------------------------------------------------------- run
@@ -244,7 +274,8 @@ def run_job(job: Job) -> JobResult:
         spec = load_pipeline(Path(job.pipeline), registry)
         path = process_session(Path(job.session), job.session_id, spec, registry, Path(job.out),
                                export=job.export)
-        return JobResult(job.session, "ok", str(path) if path else "(no calibration exported)")
+        verdict = (read_verdict(path) or {}).get("status", "") if path else ""
+        return JobResult(job.session, "ok", str(path) if path else "(no calibration exported)", verdict)
     except ImupipeError as exc:
         return job.failed(str(exc))
     except Exception as exc:  # noqa: BLE001 - the batch reports it and goes on with the others
@@ -321,8 +352,10 @@ def batch(
     *,
     plugins: RegistrySpec | None = None,
     export: Sequence[str] = (),
+    strict: bool = False,
 ) -> list[JobResult]:
-    """``imupipe batch``: each session an independent job; returns the failures.
+    """``imupipe batch``: each session an independent job; returns the failures (``strict``:
+    and the sessions whose verdict is warn or fail).
 
     Prints a summary table (session, status, output or reason).
     """
@@ -341,7 +374,7 @@ def batch(
         kwargs = {"on_result": lambda *_: p.advance(task)} if _takes_on_result(runner) else {}
         results = runner.map(run_job, jobs_list, jobs, **kwargs)
     print(summary(results))
-    return [r for r in results if r.status != "ok"]
+    return [r for r in results if r.status != "ok" or (strict and r.verdict not in ("pass", ""))]
 
 
 def _takes_on_result(executor) -> bool:
@@ -356,7 +389,7 @@ def _takes_on_result(executor) -> bool:
 def summary(results: Sequence[JobResult]) -> str:
     """A plain table: session, status, output or reason."""
     rows = [("session", "status", "output / reason")] + [
-        (r.session, r.status, r.detail) for r in results
+        (r.session, f"{r.status} ({r.verdict})" if r.verdict else r.status, r.detail) for r in results
     ]
     w0, w1 = (max(len(r[i]) for r in rows) for i in (0, 1))
     failed = sum(r.status != "ok" for r in results)
