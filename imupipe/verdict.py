@@ -16,7 +16,8 @@ The checks and their limits (consumer-to-tactical MEMS, SI raw units):
 - validation: the turn-angle errors (``validate_turns``) against their
   tolerance, the control-set errors (``validate_control``) against the raw ones;
   a calibration that makes them worse than no calibration fails;
-- plausible values: det M > 0 (a left-handed M is a sign or axis mix-up: fail),
+- plausible values: det M > 0 (a left-handed M is a sign or axis mix-up: fail), the
+  gyro's axes within ``FRAME_WARN_DEG`` / ``FRAME_FAIL_DEG`` of the accelerometer's,
   the singular values of M within ``SCALE_RANGE`` of nominal, biases below
   ``BIAS_WARN`` / ``BIAS_FAIL``;
 - uncertainties: reported, finite, and the 1-sigma of scale and bias below
@@ -47,6 +48,8 @@ MAG_ANISOTROPY_WARN = 2.0  # ratio of the largest to the smallest singular value
 BIAS_WARN = {"accel": 1.5, "gyro": 0.35}  # m/s^2 (~150 mg), rad/s (20 deg/s)
 BIAS_FAIL = {"accel": 3.0, "gyro": 1.75}  # ~300 mg, 100 deg/s
 SIGMA_WARN = {"scale": 0.01, "accel": 0.05, "gyro": 0.005}  # 1 %, ~5 mg, ~0.3 deg/s
+FRAME_WARN_DEG = 5.0  # gyro vs accelerometer axes (one IMU: a degree or two at most)
+FRAME_FAIL_DEG = 30.0
 COVERAGE_DEG = 60.0
 RATE_WARN_HZ = 50.0
 RATE_FAIL_HZ = 10.0
@@ -81,8 +84,9 @@ def judge(calibration: Mapping[str, Any], tables: Mapping[str, pa.Table] | None 
     checks += fit_checks(calibration, [_map_doc(t) for t in by_schema.get("residual_map", [])])
     checks += validation_checks(by_schema.get("validation", []), by_schema.get("control_errors", []))
     checks += value_checks(calibration)
+    checks += frame_checks(calibration)
     checks += sigma_checks(calibration)
-    checks += coverage_checks(by_schema.get("rests", []))
+    checks += coverage_checks(by_schema.get("rests", []), calibration.get("accel"))
     checks += stream_checks(facts or {}, by_schema.get("events", []))
     return summarise(checks)
 
@@ -247,6 +251,32 @@ def value_checks(calibration: Mapping[str, Any]) -> list[Check]:
     return out
 
 
+def _rotation_part(M: np.ndarray) -> np.ndarray:
+    """The rotation Q of the polar decomposition M = Q H (H symmetric positive definite)."""
+    U, _, Vt = np.linalg.svd(M)
+    Q = U @ Vt
+    return Q
+
+
+def frame_checks(calibration: Mapping[str, Any]) -> list[Check]:
+    """The gyro's axes against the accelerometer's: sensors of one IMU are aligned within a
+    few degrees; a half turn is an axis sign-flipped in the accelerometer (the gyro then
+    absorbs it as a proper rotation, and det M stays positive)."""
+    if "accel" not in calibration or "gyro" not in calibration:
+        return []
+    Ma, Mg = (np.asarray(calibration[s]["M"], float) for s in ("accel", "gyro"))
+    if not (np.isfinite(Ma).all() and np.isfinite(Mg).all()) or np.linalg.det(Ma) * np.linalg.det(Mg) <= 0:
+        return []  # the det check has said it
+    R = _rotation_part(Mg) @ _rotation_part(Ma).T
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+    status = "fail" if angle > FRAME_FAIL_DEG else "warn" if angle > FRAME_WARN_DEG else "pass"
+    detail = f"gyro axes turned {angle:.3g} deg from the accelerometer's (warn above {FRAME_WARN_DEG:g})"
+    if status == "fail":
+        detail += (": an axis sign-flipped or two axes swapped in one triad (the calibrated frame "
+                   "is left-handed or mislabelled): fix the axis mapping and rerun")
+    return [Check("frames", status, detail)]
+
+
 def sigma_checks(calibration: Mapping[str, Any]) -> list[Check]:
     out = []
     for sensor in ("accel", "gyro"):
@@ -281,7 +311,8 @@ def sigma_checks(calibration: Mapping[str, Any]) -> list[Check]:
 AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 
 
-def coverage_checks(rests_tables: list[pa.Table]) -> list[Check]:
+def coverage_checks(rests_tables: list[pa.Table], accel: Mapping[str, Any] | None = None) -> list[Check]:
+    """Calibrated gravity directions of the rests (raw ones without an accel calibration)."""
     out = []
     for t in rests_tables[:1]:
         if "accel_mean" not in t.column_names or t.num_rows == 0:
@@ -289,6 +320,8 @@ def coverage_checks(rests_tables: list[pa.Table]) -> list[Check]:
         a = np.asarray(t.column("accel_mean").combine_chunks().flatten().to_numpy(zero_copy_only=False),
                        float).reshape(-1, 3)
         a = a[np.isfinite(a).all(axis=1)]
+        if accel is not None:
+            a = (a - np.asarray(accel.get("b0", [0, 0, 0]), float)) @ np.asarray(accel["M"], float).T
         u = a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-300)
         dirs = np.vstack([np.eye(3), -np.eye(3)])[[0, 3, 1, 4, 2, 5]]
         nearest = np.degrees(np.arccos(np.clip((u @ dirs.T).max(axis=0), -1, 1)))

@@ -40,6 +40,19 @@ def _summary(table: pa.Table) -> dict:
     return json.loads((table.schema.metadata or {}).get(b"imupipe.summary", b"{}"))
 
 
+def verdict_section(verdict: Mapping[str, Any] | None) -> list[str]:
+    """Markdown: the verdict (``imupipe.verdict``) and its reasons, then every check made."""
+    if not verdict:
+        return []
+    lines = [f"## Verdict: {verdict.get('status', '?')}", ""]
+    lines += [f"- {r}" for r in verdict.get("reasons", [])] or ["Every check passed."]
+    checks = verdict.get("checks", [])
+    if checks:
+        lines += ["", "| check | status | detail |", "|---|---|---|"]
+        lines += [f"| {c['check']} | {c['status']} | {c['detail']} |" for c in checks]
+    return [*lines, ""]
+
+
 def _fit_lines(stage: str, turns: pa.Table) -> list[str]:
     """Markdown: the fit's chi2/dof per block and the turn table's chi2 per row."""
     summary = _summary(turns)
@@ -118,6 +131,7 @@ class ReportExporter:
         written: list[Path] = []
         lines = [f"# Calibration report: {context.get('session', '?')}", "",
                  f"pipeline `{context.get('pipeline', '?')}`, imupipe {context.get('imupipe_version', '?')}", ""]
+        lines += verdict_section(context.get("verdict"))
         if context.get("skipped"):
             lines += ["Skipped stages: " + ", ".join(f"`{k}` ({v})" for k, v in dict(context["skipped"]).items()), ""]
         groups = _by_stage(results)
