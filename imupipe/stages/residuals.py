@@ -19,7 +19,7 @@ import pyarrow as pa
 from pydantic import Field
 
 from .. import schemas
-from ..components import BoundSolver, Params, Stage
+from ..components import BoundSolver, LocalGravity, Params, Stage
 from ..diagnosis.evaluate import Event, evaluate
 from ..diagnosis.residual_map import residual_map
 from ..models import Calibration
@@ -35,7 +35,7 @@ class MapParams(Params):
     """Spacing of the attitude-error knots inside each motion, s."""
     fdr_q: float = Field(0.05, gt=0, lt=1)
     """False-discovery rate of the flagged cells (Benjamini-Hochberg)."""
-    g_m_s2: float | None = Field(None, gt=0)
+    g_m_s2: LocalGravity | None = None
     """Local gravity, m/s^2; default: the one the calibration was fitted with."""
 
 
