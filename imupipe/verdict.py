@@ -24,7 +24,8 @@ The checks and their limits (consumer-to-tactical MEMS, SI raw units):
   ``SIGMA_WARN``;
 - coverage: a rest within ``COVERAGE_DEG`` of each of the six axis directions;
 - the streams: rate at least ``RATE_WARN_HZ`` (``RATE_FAIL_HZ``), and the events
-  the screening found (gaps, shocks, splices, saturation; turns left out).
+  the screening found (``EVENT_STATUS``: a splice fails, as its sections may come from
+  different power-ups; gaps and shocks warn, the turns holding them being left out).
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ RATE_WARN_HZ = 50.0
 RATE_FAIL_HZ = 10.0
 VALIDATION_ACCEPTED_WARN = 0.9  # fraction of informative turns within tolerance
 VALIDATION_ACCEPTED_FAIL = 0.5
+EVENT_STATUS = {"splice": "fail", "gap": "warn", "shock": "warn", "saturation": "warn"}
 ORDER = {"pass": 0, "warn": 1, "fail": 2}
 STATUSES = tuple(ORDER)
 
@@ -346,16 +348,23 @@ def stream_checks(facts: Mapping[str, Mapping[str, Any]], events: list[pa.Table]
     for t in events:
         kinds = [str(k) for k in t.column("kind").to_pylist()] if "kind" in t.column_names else []
         if not kinds:
-            out.append(Check("events", "pass", "no gaps, shocks, splices or saturation found"))
+            out.append(Check("events", "pass", "no gaps, shocks or splices found"))
             continue
-        counts = {k: kinds.count(k) for k in dict.fromkeys(kinds)}
+        meta = t.schema.metadata or {}
+        left, total = meta.get(b"imupipe.turns_left_out"), meta.get(b"imupipe.turns")
         details = t.column("detail").to_pylist() if "detail" in t.column_names else []
-        first = f"; first: {details[0]}" if details else ""
-        out.append(Check("events", "warn", "recording events: " + ", ".join(
-            f"{n} {k}{'s' if n > 1 else ''}" for k, n in counts.items()) + first))
+        for kind in dict.fromkeys(kinds):
+            n = kinds.count(kind)
+            first = details[kinds.index(kind)] if details else ""
+            detail = f"{n} {kind}{'s' if n > 1 else ''} in the recording; first: {first}"
+            if kind == "splice":
+                detail += ("; the sections may differ in turn-on bias and temperature: split the "
+                           "recording at the splices and calibrate each section, or record one session")
+            out.append(Check("events", EVENT_STATUS.get(kind, "warn"), detail))
+        if left is not None and int(left):
+            out.append(Check("events", "warn", f"{int(left)} of {int(total or 0)} turns left out of the "
+                             "fits: they hold a gap, shock or splice"))
     return out
-
-
 
 
 def read_verdict(calibration_json) -> dict | None:

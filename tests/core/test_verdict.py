@@ -124,8 +124,14 @@ def test_rate_and_events():
     events = schemas.stamp(pa.table({"kind": ["gap", "splice"], "sensor": ["all", "accel"],
                                      "t_start_s": [1.0, 5.0], "t_end_s": [3.7, 5.01],
                                      "detail": ["2.7 s without samples", "gravity jumps 90 deg"]}), "events")
+    events = events.replace_schema_metadata({**events.schema.metadata, b"imupipe.turns_left_out": b"2",
+                                             b"imupipe.turns": b"40"})
     v = judge(doc(), {"e": events})
-    assert v["status"] == "warn" and "1 gap, 1 splice" in reasons(v)
+    assert v["status"] == "fail" and v["reasons"][0].startswith("fail: 1 splice in the recording")
+    assert "warn: 1 gap in the recording; first: 2.7 s without samples" in v["reasons"]
+    assert "warn: 2 of 40 turns left out of the fits: they hold a gap, shock or splice" in v["reasons"]
+    only_gap = events.filter(pa.array([True, False]))
+    assert judge(doc(), {"e": only_gap})["status"] == "warn"
 
 
 def validation_table(n_inf: int, n_ok: int, before: float, after: float) -> pa.Table:
