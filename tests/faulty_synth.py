@@ -48,56 +48,62 @@ def motions(cols, threshold: float = 0.2) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True))
 
 
-def tilting(cols) -> int:
-    """The motion that tilts gravity the most (longest first among those over 30 deg): a turn
-    about the vertical is invisible to the gravity the gyro is fitted on."""
+def tilting(cols, n: int = 1) -> list[int]:
+    """The ``n`` longest motions among those tilting gravity by more than 30 deg: a turn about
+    the vertical is invisible to the gravity the gyro is fitted on."""
     a = np.column_stack([cols[f"accel_{x}"] for x in "xyz"])
-    best, score = 0, -1.0
+    scored = []
     for j, (i0, i1) in enumerate(motions(cols)):
         u0, u1 = a[max(i0 - 20, 0):i0].mean(axis=0), a[i1:i1 + 20].mean(axis=0)
         tilt = np.degrees(np.arccos(np.clip(u0 @ u1 / np.linalg.norm(u0) / np.linalg.norm(u1), -1, 1)))
-        s = (i1 - i0) if tilt > 30 else -1.0
-        if s > score:
-            best, score = j, s
-    return best
+        if tilt > 30:
+            scored.append((i1 - i0, j))
+    return [j for _, j in sorted(scored, reverse=True)[:n]]
 
 
-def splice(cols, n_cuts: int = 6) -> dict[str, np.ndarray]:
+def splice(cols, n_cuts: int = 4) -> tuple[dict[str, np.ndarray], list[float]]:
     """Cut out ``n_cuts`` stretches, each from the middle of one rest to the middle of a rest
     several motions later (a different attitude), and join the rest with continuous stamps:
-    gravity jumps between two consecutive samples with no rotation measured."""
+    gravity jumps between two consecutive samples with no rotation measured. Returns the columns
+    and the times of the joins, s from the first sample."""
     ms = motions(cols)
     keep = np.ones(len(cols["t_ns"]), bool)
+    joins: list[int] = []
     step = max(len(ms) // (n_cuts + 1), 2)
     for k in range(n_cuts):
-        a, b = k * step + 1, k * step + 2  # cut from the rest after motion a to the rest after b
+        a, b = k * step + 1, k * step + 2  # cut from the rest before motion a to the rest after b
         if b >= len(ms) - 1:
             break
         i = (ms[a - 1][1] + ms[a][0]) // 2 if a else ms[0][0] // 2
         j = (ms[b][1] + ms[b + 1][0]) // 2
         keep[i:j] = False
+        joins.append(int(i - (~keep[:i]).sum()))  # the join's index in the kept samples
     out = {c: v[keep] for c, v in cols.items()}
     dt = int(np.median(np.diff(cols["t_ns"])))
     out["t_ns"] = cols["t_ns"][0] + dt * np.arange(int(keep.sum()), dtype=np.int64)
-    return out
+    return out, [j * dt * 1e-9 for j in joins]
 
 
-def gap(cols, motion: int | None = None, seconds: float = 1.0) -> tuple[dict[str, np.ndarray], float]:
-    """Drop ``seconds`` of samples from the middle of motion ``motion`` (stamps untouched: the
-    samples are missing; default: the ``tilting`` motion). Returns the columns and the gap's
-    start, s from the first sample."""
-    i0, i1 = motions(cols)[tilting(cols) if motion is None else motion]
+def gap(cols, n: int = 3, seconds: float = 0.8) -> tuple[dict[str, np.ndarray], list[float]]:
+    """Drop ``seconds`` of samples early in each of the ``n`` ``tilting`` motions
+    (stamps untouched: the samples are missing). Returns the columns and the gaps' starts, s."""
     t = (cols["t_ns"] - cols["t_ns"][0]) * 1e-9
-    mid = 0.5 * (t[i0] + t[i1 - 1])
-    drop = (t >= mid - seconds / 2) & (t < mid + seconds / 2)
-    return {c: v[~drop] for c, v in cols.items()}, float(mid - seconds / 2)
+    drop = np.zeros(len(t), bool)
+    starts = []
+    ms = motions(cols)
+    for j in tilting(cols, n):
+        i0, i1 = ms[j]
+        start = t[i0] + 0.1 * (t[i1 - 1] - t[i0])  # on the ramp up: the held rate is not the lost one
+        drop |= (t >= start) & (t < start + seconds)
+        starts.append(float(start))
+    return {c: v[~drop] for c, v in cols.items()}, sorted(starts)
 
 
 def shock(cols, motion: int | None = None, g: float = 5.0, dps: float = 400.0) -> tuple[dict[str, np.ndarray], float]:
     """One sample in the middle of motion ``motion`` hit by ``g`` g on accel x and ``dps`` deg/s
     on gyro y (a knock; default: in the ``tilting`` motion). Returns the columns and the sample's
     time, s."""
-    i0, i1 = motions(cols)[tilting(cols) if motion is None else motion]
+    i0, i1 = motions(cols)[tilting(cols)[0] if motion is None else motion]
     i = (i0 + i1) // 2
     out = {c: v.copy() for c, v in cols.items()}
     out["accel_x"][i] += g * G
@@ -111,3 +117,13 @@ def units(cols, sensor: str, factor: float) -> dict[str, np.ndarray]:
     for a in "xyz":
         out[f"{sensor}_{a}"] = cols[f"{sensor}_{a}"] * factor
     return out
+
+
+def fast_pipeline(folder: Path, pipelines: Path) -> Path:
+    """``gimbal-optimization.toml`` without its residual-map stage (about 1 s of fitting):
+    screening, method B's stages, the joint refinement and the control set."""
+    text = (pipelines / "gimbal-optimization.toml").read_text()
+    path = Path(folder) / "fast.toml"
+    path.write_text(text.split("[stages.map]")[0] + '[export]\ncalibration = ["accel.calibration", '
+                    '"gyro.calibration", "refine.calibration"]\nreports = ["control.control", "rests.rests"]\n')
+    return path
