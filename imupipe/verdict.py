@@ -130,7 +130,10 @@ def fit_checks(calibration: Mapping[str, Any], maps: list[dict]) -> list[Check]:
             for name, b in (joint.get("blocks") or {}).items():
                 if b.get("chi2_per_dof") is not None and b.get("dof"):
                     blocks.append((f"joint fit {name}", float(b["chi2_per_dof"]), float(b["dof"])))
+            saturated = int(joint.get("turns_saturated") or 0)
             break  # both triads carry the same joint fit
+    else:
+        saturated = 0
     for doc in maps:
         for b in doc.get("blocks", []):
             if b.get("chi2_per_dof") is not None and b.get("dof"):
@@ -147,6 +150,9 @@ def fit_checks(calibration: Mapping[str, Any], maps: list[dict]) -> list[Check]:
             what = "below its expected spread: the noise model overstates the noise"
         out.append(Check("chi2", status, f"{name}: chi2/dof {c:.3g} over {dof:.0f} dof "
                                          f"(expected 1 +- {spread:.2g}): {what}"))
+    if saturated:
+        out.append(Check("events", "warn", f"{saturated} turns left out of the joint fit: their gyro "
+                         "samples reach the saturation rate (turn slower)"))
     return out
 
 

@@ -147,3 +147,10 @@ def validation_table(n_inf: int, n_ok: int, before: float, after: float) -> pa.T
 def test_turn_validation_against_tolerance(n_ok, before, after, expected):
     v = judge(doc(), {"v": validation_table(32, n_ok, before, after)})
     assert v["status"] == expected, reasons(v)
+
+
+def test_turns_left_out_for_saturation_warn():
+    d = doc(blocks={})
+    d["gyro"]["joint"]["turns_saturated"] = 3  # the one joint fit both triads carry
+    v = judge(d)
+    assert v["status"] == "warn" and "3 turns left out of the joint fit" in reasons(v)
