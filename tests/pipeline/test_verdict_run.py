@@ -80,3 +80,10 @@ def test_sign_flipped_accel_axis_fails(sessions, tmp_path, capsys):
     code, printed, doc = run(sessions, "flipped", tmp_path, capsys, "--strict")
     assert code == 3 and doc["verdict"]["status"] == "fail"
     assert "gyro axes turned 180 deg from the accelerometer's" in printed
+
+
+def test_batch_shows_verdicts_and_strict_exits_3(sessions, tmp_path, capsys):
+    code = main(["batch", str(sessions["swapped"]), "--pipeline", str(sessions["pipeline"]), "--out",
+                 str(tmp_path), "--jobs", "1", "--quiet", "--strict"])
+    printed = capsys.readouterr().out
+    assert code == 3 and "ok (fail)" in printed
