@@ -81,8 +81,8 @@ def check_units(tables: Mapping[str, pa.Table]) -> None:
             if top > GYRO_MAX_RAD_S:
                 raise ReaderError(
                     f"gyro: rates reach {top:.4g} (99th percentile of |omega|), beyond any MEMS gyro's "
-                    f"range in rad/s ({GYRO_MAX_RAD_S:g}): the data look like deg/s; give the column "
-                    'unit = "deg/s" in a session manifest, or multiply by pi/180')
+                    f"range in rad/s ({GYRO_MAX_RAD_S:g}): the data look like deg/s (or counts); give the "
+                    'column unit = "deg/s" (or "counts") in a session manifest, or multiply by pi/180')
             continue
         if sensor not in UNIT_CHECKS:
             continue
