@@ -44,8 +44,10 @@ def test_a_sound_calibration_passes_with_every_check_listed():
     (1.05, 100, "pass"),   # within 1 +- sqrt(2/100) * 5
     (1.9, 100, "pass"),    # beyond the spread but residuals only 1.4x the noise
     (3.0, 1000, "warn"),   # far beyond its spread and above 2
+    (1000.0, 300, "warn"),  # a real hand-held recording's per-sample turn block: understated sigma
     (0.5, 10000, "warn"),  # the noise model overstates the noise
     (1.8e5, 200, "fail"),  # swapped axes (issue 12): residuals hundreds of times the noise
+    (2e4, 50, "fail"),
     (float("nan"), 10, "fail"),
 ])
 def test_chi2_per_dof_is_judged_against_its_spread(c, dof, expected):
@@ -141,11 +143,12 @@ def validation_table(n_inf: int, n_ok: int, before: float, after: float) -> pa.T
                                                         "imupipe.summary": json.dumps(summary)})
 
 
-@pytest.mark.parametrize("n_ok, before, after, expected", [
-    (32, 1.5, 0.01, "pass"), (25, 1.5, 0.05, "warn"), (32, 1.5, 0.2, "warn"), (0, 1.5, 0.8, "fail"), (32, 0.05, 0.06, "fail"),
+@pytest.mark.parametrize("n_ok, before, after, expected, n_inf", [
+    (32, 1.5, 0.01, "pass", 32), (25, 1.5, 0.05, "warn", 32), (32, 1.5, 0.2, "warn", 32),
+    (0, 1.5, 0.8, "fail", 32), (32, 0.05, 0.06, "fail", 32), (0, 4.1, 0.13, "warn", 1),
 ])
-def test_turn_validation_against_tolerance(n_ok, before, after, expected):
-    v = judge(doc(), {"v": validation_table(32, n_ok, before, after)})
+def test_turn_validation_against_tolerance(n_ok, before, after, expected, n_inf):
+    v = judge(doc(), {"v": validation_table(n_inf, n_ok, before, after)})
     assert v["status"] == expected, reasons(v)
 
 
