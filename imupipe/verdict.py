@@ -60,6 +60,7 @@ VALIDATION_ACCEPTED_WARN = 0.9  # fraction of informative turns within tolerance
 VALIDATION_ACCEPTED_FAIL = 0.5  # with at least VALIDATION_MIN_TURNS informative turns
 VALIDATION_MIN_TURNS = 5
 EVENT_STATUS = {"splice": "fail", "gap": "warn", "shock": "warn", "saturation": "warn"}
+PRINTED_REASONS = 6  # under each path ``imupipe run`` prints; all are in calibration.json
 ORDER = {"pass": 0, "warn": 1, "fail": 2}
 STATUSES = tuple(ORDER)
 
@@ -396,7 +397,9 @@ def verdict_lines(verdict: Mapping[str, Any] | None) -> list[str]:
     n = len(verdict.get("checks", []))
     head = f"verdict: {verdict.get('status', '?')}"
     head += f" ({n} checks)" if not reasons else f" ({len(reasons)} of {n} checks)"
-    return [head, *(f"  {r}" for r in reasons)]
+    more = [f"  ... {len(reasons) - PRINTED_REASONS} more in calibration.json and report.md"] \
+        if len(reasons) > PRINTED_REASONS else []
+    return [head, *(f"  {r}" for r in reasons[:PRINTED_REASONS]), *more]
 
 
 def strict_failure(verdicts: list[Mapping[str, Any] | None]) -> bool:
