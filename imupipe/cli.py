@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import sys
 from pathlib import Path
 
@@ -31,6 +32,18 @@ def _parser() -> argparse.ArgumentParser:
                         help="also write the calibration for other software, in DIR/<session>/"
                              "export/: kalibr, imu_tk, px4, ardupilot, imu_calib")
 
+    def pipeline_options(sp: argparse.ArgumentParser) -> None:
+        """--pipeline, --set, --device: run, batch, status (and diagnose) take the same ones."""
+        sp.add_argument("--pipeline", type=Path, default=None, metavar="FILE_OR_NAME",
+                        help="pipeline TOML, or the name of a shipped one (imupipe pipelines); "
+                             "default: the built-in one")
+        sp.add_argument("--set", action="append", default=[], dest="overrides",
+                        metavar="STAGE.PARAM=VALUE",
+                        help="override a pipeline parameter, e.g. --set accel.g_m_s2=9.81 "
+                             "(validated like the pipeline file)")
+        sp.add_argument("--device", default=None, metavar="NAME",
+                        help="which IMU of a multi-IMU recording (the pipeline's [input] device)")
+
     sp = sub.add_parser("ingest", help="read a session into canonical Arrow tables")
     sp.add_argument("session", type=Path)
     sp.add_argument("--out", type=Path, default=None, help="output directory (default: ./<session-stem>.tables)")
@@ -38,14 +51,14 @@ def _parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("run", help="calibrate one or more sessions")
     sp.add_argument("sessions", type=Path, nargs="+", metavar="SESSION")
-    sp.add_argument("--pipeline", type=Path, default=None, help="pipeline TOML (default: the built-in one)")
+    pipeline_options(sp)
     sp.add_argument("--out", type=Path, default=Path("imupipe-out"))
     exports(sp)
     common(sp)
 
     sp = sub.add_parser("batch", help="calibrate every session under directories or globs")
     sp.add_argument("inputs", nargs="+", metavar="GLOB_OR_DIR")
-    sp.add_argument("--pipeline", type=Path, default=None)
+    pipeline_options(sp)
     sp.add_argument("--out", type=Path, default=Path("imupipe-out"))
     sp.add_argument("--executor", default="local", help="local (process pool) or dask (extra imupipe[dask])")
     sp.add_argument("--jobs", type=int, default=None, help="parallel jobs (default: number of cores)")
@@ -54,7 +67,7 @@ def _parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("status", help="say which stages of a pipeline are stale and why")
     sp.add_argument("sessions", type=Path, nargs="*", metavar="SESSION")
-    sp.add_argument("--pipeline", type=Path, default=None)
+    pipeline_options(sp)
     sp.add_argument("--out", type=Path, default=Path("imupipe-out"))
     common(sp)
 
@@ -79,6 +92,7 @@ def _parser() -> argparse.ArgumentParser:
     common(sp)
 
     common(sub.add_parser("plugins", help="list every plugin and what it provides"))
+    common(sub.add_parser("pipelines", help="list the shipped pipelines, one line each"))
     return p
 
 
@@ -136,11 +150,40 @@ def _cmd_plugins(args) -> int:
     return 0
 
 
+def _overrides(args) -> list[str]:
+    """``--set`` items, and ``--device NAME`` as the override ``input.device``."""
+    sets = list(getattr(args, "overrides", []) or [])
+    if getattr(args, "device", None):
+        sets.append(f"input.device={json.dumps(args.device)}")
+    return sets
+
+
+def _cmd_pipelines(args) -> int:
+    import tomllib
+
+    from .pipeline.config import shipped_pipelines
+
+    rows = []
+    for name, path in shipped_pipelines().items():
+        try:
+            text = str(tomllib.loads(path.read_text()).get("description", "")).strip()
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError):
+            text = "(not valid TOML)"
+        first = " ".join(re.split(r"(?<=[a-z0-9)])\.\s+(?=[A-Z])", text)[0].split()).rstrip(".")
+        if len(first) > 100:  # one line: the description's first sentence, cut at a word
+            first = first[:100].rsplit(" ", 1)[0].rstrip(",;:(") + " ..."
+        rows.append((name, first or "(no description)"))
+    width = max((len(n) for n, _ in rows), default=0)
+    for name, line in rows:
+        print(f"{name:<{width}}  {line}")
+    return 0
+
+
 def _cmd_run(args) -> int:
     from .pipeline.api import run_sessions
 
     for path in run_sessions(args.sessions, pipeline=args.pipeline, out=args.out, quiet=args.quiet,
-                             export=args.export):
+                             export=args.export, overrides=_overrides(args)):
         print(path)
     return 0
 
@@ -149,14 +192,14 @@ def _cmd_batch(args) -> int:
     from .pipeline.api import batch
 
     failures = batch(args.inputs, pipeline=args.pipeline, out=args.out, executor=args.executor,
-                     jobs=args.jobs, quiet=args.quiet, export=args.export)
+                     jobs=args.jobs, quiet=args.quiet, export=args.export, overrides=_overrides(args))
     return 2 if failures else 0
 
 
 def _cmd_status(args) -> int:
     from .pipeline.api import status
 
-    print(status(args.sessions, pipeline=args.pipeline, out=args.out))
+    print(status(args.sessions, pipeline=args.pipeline, out=args.out, overrides=_overrides(args)))
     return 0
 
 
@@ -184,7 +227,8 @@ def _cmd_simulate(args) -> int:
 
 
 COMMANDS = {"ingest": _cmd_ingest, "run": _cmd_run, "batch": _cmd_batch, "status": _cmd_status,
-            "simulate": _cmd_simulate, "plugins": _cmd_plugins, "export": _cmd_export}
+            "simulate": _cmd_simulate, "plugins": _cmd_plugins, "export": _cmd_export,
+            "pipelines": _cmd_pipelines}
 
 
 def main(argv: list[str] | None = None) -> int:
