@@ -17,7 +17,7 @@ from ..components import BoundSolver, Params, Stage
 from ..errors import ConfigError
 
 SESSION = "session"
-SESSION_STREAMS = ("accel", "gyro", "mag", "temperature")
+SESSION_STREAMS = ("accel", "gyro", "mag", "temperature", "sections")
 
 
 @dataclass(frozen=True)
