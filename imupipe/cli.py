@@ -170,8 +170,9 @@ def _cmd_pipelines(args) -> int:
         except (tomllib.TOMLDecodeError, UnicodeDecodeError):
             text = "(not valid TOML)"
         first = " ".join(re.split(r"(?<=[a-z0-9)])\.\s+(?=[A-Z])", text)[0].split()).rstrip(".")
-        if len(first) > 100:  # one line: the description's first sentence, cut at a word
-            first = first[:100].rsplit(" ", 1)[0].rstrip(",;:(") + " ..."
+        if len(first) > 100:  # one line: the first sentence up to its colon, else cut at a word
+            head = first.split(": ")[0]
+            first = head if len(head) <= 100 else first[:100].rsplit(" ", 1)[0].rstrip(",;:(") + " ..."
         rows.append((name, first or "(no description)"))
     width = max((len(n) for n, _ in rows), default=0)
     for name, line in rows:
