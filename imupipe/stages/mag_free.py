@@ -30,12 +30,16 @@ class MagFreeParams(Params):
     """``window_s``: length of the windows averaged into one point; ``max_points``: at most
     this many windows, evenly spaced in time, go to the fit; ``field_T``: local field
     magnitude (None: the ellipsoid's mean radius, i.e. the sensor's own scale on average);
-    ``min_coverage``: how evenly the tumble must cover the sphere (1 = uniform)."""
+    ``min_coverage``: how evenly the tumble must cover the sphere (1 = uniform), about the
+    data's mean before the fit and about the fitted centre after it; ``max_anisotropy``: the
+    largest ratio of M's singular values believed (a soft iron stretching the field by more is
+    taken for a fit the data do not determine)."""
 
     window_s: float = Field(0.1, gt=0)
     max_points: int = Field(2000, ge=12)
     field_T: float | None = Field(None, gt=0)
     min_coverage: float = Field(0.35, ge=0, le=1)
+    max_anisotropy: float = Field(2.0, gt=1)
     solver: str = "ellipsoid_magcal"
     solver_params: dict = Field(default_factory=dict)
 
@@ -90,6 +94,15 @@ def calibrate_mag_free(inputs: Mapping[str, pa.Table], params: MagFreeParams,
         magnitude = abs(np.linalg.det(np.asarray(run(1.0).M))) ** (-1 / 3)
         field_source = "ellipsoid mean radius (set field_T for absolute scale)"
     fit = run(magnitude)
+    M, b = np.asarray(fit.M), np.asarray(fit.b0)
+    cov_fit, sv = coverage(y - b), np.linalg.svd(M, compute_uv=False)
+    if cov_fit < params.min_coverage or sv[0] / sv[-1] > params.max_anisotropy:
+        raise SolverError(
+            f"calibrate_mag_free: the data do not determine the ellipsoid: about the fitted centre "
+            f"the points cover {cov_fit:.2f} of the sphere (need >= {params.min_coverage}) and "
+            f"M stretches {sv[0] / sv[-1]:.2f}:1 (believed up to {params.max_anisotropy}); the "
+            "recording does not turn the sensor through every orientation (a flight or a drive "
+            "mostly yaws); record a tumble with each axis up and down")
     cal = fit.to_calibration("mag", solver.solver.name, extra={
         "noise": {"white_sigma": sigma.tolist(), "white_sigma_unit": "per sample"},
         "field_T": magnitude, "field_source": field_source, "n_windows": len(y),

@@ -58,6 +58,17 @@ def test_a_tumble_about_one_axis_is_refused_with_the_fix():
         run_stage(make_registry(), "calibrate_mag_free", {"mag": mag_table(*tumble(axes="z"))})
 
 
+def test_a_planar_motion_with_some_tilt_is_refused_not_fitted():
+    # mostly yaw, a little pitch and roll (a flight): the pre-fit coverage about the mean can
+    # pass, but the ellipsoid is not determined; refused instead of a wild M
+    t, m = tumble(axes="z")
+    rng = np.random.default_rng(5)
+    tilt = np.cumsum(rng.normal(0, 0.02, (len(m), 2)), axis=0)
+    m = m + np.column_stack([tilt * 8e-6, np.zeros(len(m))])
+    with pytest.raises(SolverError, match="cover|do not determine"):
+        run_stage(make_registry(), "calibrate_mag_free", {"mag": mag_table(t, m)}, min_coverage=0.0)
+
+
 def test_magnetometer_pipeline_from_the_command_line(tmp_path, capsys):
     t, m = tumble()
     csv = tmp_path / "mag.csv"
