@@ -83,3 +83,48 @@ def test_simulated_ferraris_without_sections(tmp_path, capsys):
         M, M_true = np.array(doc[sensor]["M"]), np.array(truth["calibration"][sensor]["M"])
         np.testing.assert_allclose(M, M_true, atol=3e-4)  # earth rate and warm-up drift remain
     np.testing.assert_allclose(doc["gyro"]["b0"], truth["calibration"]["gyro"]["b0"], atol=1e-3)
+
+
+def _sim_inputs(seed=3):
+    """A simulated Ferraris session's tables and its section list from the truth segments."""
+    import pyarrow as pa
+
+    from imupipe import schemas
+    from imupipe.sim.api import simulate_recording
+
+    rec, truth = simulate_recording("ferraris", seed=seed, pose_s=4.0, turn_s=5.0)
+    dev = rec.device()
+    t0 = dev["accel"].column("t_ns").to_numpy()[0]
+    segs = [s for s in truth.data["segments"] if s["label"] in ("pose", "ferraris_turn")]
+    names = ["x_p", "x_rot", "x_p2", "x_a", "y_p", "y_rot", "y_p2", "y_a", "z_p", "z_rot", "z_p2", "z_a"]
+    rows = [(n, int(t0 + s["t_start_s"] * 1e9), int(t0 + s["t_end_s"] * 1e9))
+            for n, s in zip(names, segs, strict=True) if not n.endswith("2")]
+    table = schemas.stamp(pa.table({
+        "name": [r[0] for r in rows], "t_start_ns": [r[1] for r in rows],
+        "t_end_ns": [r[2] for r in rows], "start": [0] * len(rows), "end": [0] * len(rows),
+        "stream": ["accel"] * len(rows)}), "sections")
+    return {"accel": dev["accel"], "gyro": dev["gyro"], "sections": table}, json.loads(truth.to_json())
+
+
+def test_sections_path_on_simulated_data_and_a_gap_inside_a_turn_is_refused():
+    from stage_chain import run_stage
+
+    from imupipe.errors import SolverError
+    from imupipe.plugins import make_registry
+
+    inputs, truth = _sim_inputs()
+    registry = make_registry()
+    g = truth["environment"]["g_m_s2"]
+    out = run_stage(registry, "calibrate_ferraris", inputs, g_m_s2=g)
+    rows = {r["sensor"]: r for r in out["calibration"].to_pylist()}
+    for sensor in ("accel", "gyro"):
+        np.testing.assert_allclose(np.array(rows[sensor]["M"]).reshape(3, 3),
+                                   truth["calibration"][sensor]["M"], atol=3e-4)
+    # 1.5 s of gyro samples lost in the middle of the y turn: not integrated across
+    gyro = inputs["gyro"]
+    t = gyro.column("t_ns").to_numpy()
+    y_rot = next(r for r in inputs["sections"].to_pylist() if r["name"] == "y_rot")
+    mid = (y_rot["t_start_ns"] + y_rot["t_end_ns"]) // 2
+    keep = np.abs(t - mid) > 0.75e9
+    with pytest.raises(SolverError, match=r"turn 'y_rot' has a 1\.5\d* s gap"):
+        run_stage(registry, "calibrate_ferraris", {**inputs, "gyro": gyro.filter(keep)}, g_m_s2=g)
