@@ -56,6 +56,13 @@ def _parser() -> argparse.ArgumentParser:
     exports(sp)
     common(sp)
 
+    sp = sub.add_parser("diagnose", help="say which physics the calibrated model leaves out, fit it, "
+                                         "check it on held-out data")
+    sp.add_argument("session", type=Path, metavar="SESSION")
+    pipeline_options(sp)  # a pipeline with a map_residuals stage (default: the built-in one)
+    sp.add_argument("--out", type=Path, default=Path("imupipe-out"))
+    common(sp)
+
     sp = sub.add_parser("batch", help="calibrate every session under directories or globs")
     sp.add_argument("inputs", nargs="+", metavar="GLOB_OR_DIR")
     pipeline_options(sp)
@@ -189,6 +196,27 @@ def _cmd_run(args) -> int:
     return 0
 
 
+def _cmd_diagnose(args) -> int:
+    import json
+
+    from .pipeline.api import run_sessions
+
+    written = run_sessions([args.session], pipeline=args.pipeline, out=args.out, quiet=args.quiet,
+                           diagnose=True, overrides=_overrides(args))
+    folder = written[0].parent if written else None
+    path = folder / "diagnosis.json" if folder else None
+    if path is None or not path.exists():
+        print(f"imupipe diagnose: error: {args.session}: no diagnosis was written", file=sys.stderr)
+        return 1
+    doc = json.loads(path.read_text())
+    for f in doc["findings"]:
+        print(f"{f['effect']} ({f['sensor']}, {f['regime']}): {f['explanation']}")
+    if not doc["findings"]:
+        print("no finding: the calibrated model explains the recording")
+    print(path)
+    return 0
+
+
 def _cmd_batch(args) -> int:
     from .pipeline.api import batch
 
@@ -229,7 +257,7 @@ def _cmd_simulate(args) -> int:
 
 COMMANDS = {"ingest": _cmd_ingest, "run": _cmd_run, "batch": _cmd_batch, "status": _cmd_status,
             "simulate": _cmd_simulate, "plugins": _cmd_plugins, "export": _cmd_export,
-            "pipelines": _cmd_pipelines}
+            "pipelines": _cmd_pipelines, "diagnose": _cmd_diagnose}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -131,7 +131,7 @@ def _export_names(pipeline: Pipeline, registry: Registry) -> list[str]:
     if pipeline.export_calibration:
         names.append(CALIBRATION)
     if pipeline.export_reports:
-        for name in ("report", "residual_map"):
+        for name in ("report", "residual_map", "diagnosis"):
             if name in registry.names("exporters"):
                 names += getattr(registry.get("exporters", name), "writes", ())
     return names
@@ -161,8 +161,9 @@ def _export(run: SessionRun, registry: Registry, run_dir: Path, formats: Sequenc
         written = exporter.export(calibration, context, run_dir)[0]
     if pipeline.export_reports:
         tables = {str(r): t for r in pipeline.export_reports if (t := run.table(r)) is not None}
-        if "residual_map" in registry.names("exporters"):  # the map's files need no extra
-            registry.get("exporters", "residual_map").export(tables, context, run_dir)
+        for name in ("residual_map", "diagnosis"):  # their files need no extra
+            if name in registry.names("exporters"):
+                registry.get("exporters", name).export(tables, context, run_dir)
         if "report" in registry.names("exporters"):
             try:
                 registry.get("exporters", "report").export(tables, context, run_dir)
@@ -193,14 +194,17 @@ def run_sessions(
     registry: Registry | None = None,
     export: Sequence[str] = (),
     overrides: Sequence[str] = (),
+    diagnose: bool = False,
 ) -> list[Path]:
     """``imupipe run``: every session in turn; a failing session does not stop the others.
+    ``diagnose``: the pipeline's residual map stage runs as the diagnosis (``imupipe diagnose``).
 
     Returns the calibration files written; raises the first session's error
     (naming how many failed) once all have been tried.
     """
     registry = registry or make_registry()
-    spec = load_pipeline(pipeline, registry, tuple(overrides))  # bad config: fail before any data
+    # bad config: fail before reading any data
+    spec = load_pipeline(pipeline, registry, tuple(overrides), diagnose=diagnose)
     export = parse_formats(export, registry)
     # the same file named twice is one session
     sessions = list({Path(s).resolve(): Path(s) for s in sessions}.values())

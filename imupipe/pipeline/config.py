@@ -150,11 +150,30 @@ def apply_overrides(raw: dict, overrides: tuple[str, ...], path: Path, registry:
     return raw
 
 
+def _with_diagnosis(raw: dict, path: Path) -> dict:
+    """The pipeline with its ``map_residuals`` stage(s) run as ``diagnose`` (same inputs and
+    params, one more output exported: diagnosis.json)."""
+    stages = raw.get("stages", {}) if isinstance(raw, dict) else {}
+    keys = [k for k, s in stages.items() if isinstance(s, dict) and s.get("uses") == "map_residuals"]
+    if not keys:
+        raise ConfigError(f"{path}: no map_residuals stage: imupipe diagnose needs the residual map "
+                          "(use the default pipeline, or add a map_residuals stage as it does)")
+    raw = {**raw, "stages": {**stages}, "export": dict(raw.get("export", {}))}
+    reports = list(raw["export"].get("reports", []))
+    for k in keys:
+        raw["stages"][k] = {**stages[k], "uses": "diagnose"}
+        reports.append(f"{k}.diagnosis")
+    raw["export"]["reports"] = reports
+    return raw
+
+
 def load_pipeline(
-    path: Path | str | None, registry: Registry, overrides: tuple[str, ...] | list[str] = ()
+    path: Path | str | None, registry: Registry, overrides: tuple[str, ...] | list[str] = (), *,
+    diagnose: bool = False,
 ) -> dag.Pipeline:
     """Read, validate and wire a pipeline file (``None``: the default pipeline; a bare name: a
-    shipped one), with ``overrides`` (``--set STAGE.PARAM=VALUE``) applied before validation."""
+    shipped one), with ``overrides`` (``--set STAGE.PARAM=VALUE``) applied before validation;
+    ``diagnose``: its residual map stage becomes the diagnosis (``imupipe diagnose``)."""
     path = resolve_path(path)
     overrides = tuple(overrides)
     try:
@@ -163,6 +182,8 @@ def load_pipeline(
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     except UnicodeDecodeError:
         raise ConfigError(f"{path}: not a text file; expected a pipeline TOML") from None
+    if diagnose:
+        raw = _with_diagnosis(raw, path)
     if overrides:
         raw = apply_overrides(raw, overrides, path, registry)
         try:

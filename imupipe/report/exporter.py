@@ -207,6 +207,13 @@ class ReportExporter:
                     figure("residuals_in_time", "whitened residuals along the session",
                            lambda fig, s=samples, doc=doc: residual_figures.draw_time_series(fig, s, doc),
                            panels=True)
+            elif sid == "diagnosis":
+                doc = json.loads(t.schema.metadata[b"imupipe.diagnosis"])
+                lines += residual_figures.diagnosis_lines(doc)
+                proved = [f for f in doc["findings"] if f["heldout_rms_before"] is not None]
+                if proved:
+                    figure("diagnosis_heldout", "held-out residual RMS without and with each term",
+                           lambda ax, f=proved: residual_figures.draw_heldout(ax, f))
             elif sid == "rests" and "accel_mean" in t.column_names:
                 u = _col(t, "accel_mean")
                 u = u / np.linalg.norm(u, axis=1, keepdims=True)

@@ -126,3 +126,10 @@ def test_device_option_picks_one_imu(tmp_path, toy_registry, toy_pipeline, monke
                  overrides=['input.device="left"'])
     doc = json.loads((out / "pair" / "calibration.json").read_text())
     np.testing.assert_allclose(doc["gyro"]["b0"], 0.1, atol=0.01)
+
+
+def test_diagnose_takes_set_validated_before_any_data(tmp_path, capsys):
+    args = ["diagnose", str(tmp_path / "never-read.mcap"), "--out", str(tmp_path / "o"), "--quiet"]
+    assert cli.main([*args, "--set", "map.nope=1"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--set map.nope=1: stage 'map' (diagnose) has no parameter" in err
