@@ -10,7 +10,8 @@ the same axis that integrates to the most about that axis (imupipe's own ``simul
 ferraris`` records this way).
 
 Before fitting, each pose is checked to have gravity along its axis (a mislabelled
-section list is refused naming the section), and each turn to hold no stamp gap.
+section list is refused naming the section) and to be at rest (gyro scatter against the
+other poses'), and each turn to hold no stamp gap.
 """
 
 from __future__ import annotations
@@ -34,11 +35,13 @@ class FerrarisStageParams(Params):
     """``g_m_s2``: local gravity (imucal's example uses 9.81); ``turn_angle_deg``: the turns'
     known angle, signed about the up axis (imucal: -360, clockwise); None: a full turn in the
     direction the gyro saw. ``max_pose_tilt_deg``: how far a pose's gravity may be from its
-    axis before the section is refused; ``max_gap_s``: a stamp gap inside a turn that refuses it."""
+    axis before the section is refused; ``max_pose_motion``: how many times the poses' median
+    gyro scatter one pose may show before it is refused as moving; ``max_gap_s``: a stamp gap inside a turn that refuses it."""
 
     g_m_s2: float = Field(9.80665, gt=9.7, lt=9.9)
     turn_angle_deg: float | None = Field(None, ge=-3600, le=3600)
     max_pose_tilt_deg: float = Field(20.0, gt=0, le=90)
+    max_pose_motion: float = Field(10.0, gt=1)
     max_gap_s: float = Field(0.1, gt=0)
     solver: str = "ferraris"
     solver_params: dict = Field(default_factory=dict)
@@ -127,6 +130,14 @@ def calibrate_ferraris(inputs: Mapping[str, pa.Table], params: FerrarisStagePara
                 f"calibrate_ferraris: pose {p!r} ({source}) has gravity {tilt:.0f} deg from "
                 f"{'+' if sign > 0 else '-'}{p[0]} (mean accel {np.round(m, 2).tolist()} m/s^2): "
                 "the section list or the pose is mislabelled; fix the section")
+    scatter = {p: float(np.linalg.norm(pose_gyr[p].std(axis=0))) for p in POSES}
+    floor = float(np.median(list(scatter.values())))
+    for p in POSES:
+        if scatter[p] > params.max_pose_motion * max(floor, 1e-12):
+            raise SolverError(
+                f"calibrate_ferraris: pose {p!r} ({source}) is not at rest: its gyro scatter is "
+                f"{scatter[p] / floor:.0f}x the poses' median (a turn inside the section?); fix "
+                f"the section, or raise max_pose_motion = {params.max_pose_motion}")
     turn_acc, turn_gyr, turn_dt = {}, {}, {}
     for name in TURNS:
         t, w = gather(tg, vg, name)

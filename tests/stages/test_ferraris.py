@@ -60,6 +60,17 @@ def test_mislabelled_or_missing_sections_are_refused(tmp_path, shared_data, caps
     assert code == 2 and err.count("\n") == 1
     assert "pose 'x_p' (section list) has gravity 88 deg from +x" in err and "mislabelled" in err
 
+    # a pose section running 2 s into the motion after it (gravity still within 10 deg)
+    sections["x_p"], sections["y_p"] = sections["y_p"], sections["x_p"]
+    z_a = dict(sections["z_a"])
+    sections["z_a"] = {"start": z_a["start"], "end": 6200}
+    (tmp_path / "swapped.json").write_text(json.dumps(sections))
+    code, _ = _run(tmp_path, tmp_path / "a" / "session.toml")
+    err = capsys.readouterr().err
+    assert code == 2 and "pose 'z_a' (section list) is not at rest" in err
+    sections["z_a"] = z_a
+    sections["x_p"], sections["y_p"] = sections["y_p"], sections["x_p"]
+
     del sections["z_rot"]
     sections["x_p"], sections["y_p"] = sections["y_p"], sections["x_p"]
     (tmp_path / "swapped.json").write_text(json.dumps(sections))
