@@ -73,7 +73,7 @@ class Recording:
                 return next(iter(self.devices.values()))
             raise ReaderError(
                 f"{self.source}: holds {len(self.devices)} IMUs ({', '.join(sorted(self.devices))}); "
-                "choose one with `device = \"NAME\"` in the pipeline's [input] section"
+                "choose one with `device = \"NAME\"` in the pipeline's [input] section, or --device NAME"
             )
         try:
             return self.devices[name]

@@ -71,6 +71,7 @@ class Job:
     out: str
     registry: RegistrySpec = field(default_factory=RegistrySpec)
     export: tuple[str, ...] = ()  # format exporters (``--export``)
+    overrides: tuple[str, ...] = ()  # ``--set STAGE.PARAM=VALUE`` (and ``--device``)
 
     def failed(self, reason: str) -> JobResult:
         return JobResult(self.session, "failed", reason)
@@ -222,6 +223,7 @@ def run_sessions(
     *,
     registry: Registry | None = None,
     export: Sequence[str] = (),
+    overrides: Sequence[str] = (),
     diagnose: bool = False,
 ) -> list[Path]:
     """``imupipe run``: every session in turn; a failing session does not stop the others.
@@ -231,7 +233,8 @@ def run_sessions(
     (naming how many failed) once all have been tried.
     """
     registry = registry or make_registry()
-    spec = load_pipeline(pipeline, registry, diagnose=diagnose)  # bad config: fail before reading data
+    # bad config: fail before reading any data
+    spec = load_pipeline(pipeline, registry, tuple(overrides), diagnose=diagnose)
     export = parse_formats(export, registry)
     # the same file named twice is one session
     sessions = list({Path(s).resolve(): Path(s) for s in sessions}.values())
@@ -274,7 +277,7 @@ def run_job(job: Job) -> JobResult:
     """Worker: one session in its own process; never raises (a failure is a result)."""
     try:
         registry = job.registry.make()
-        spec = load_pipeline(Path(job.pipeline), registry)
+        spec = load_pipeline(Path(job.pipeline), registry, job.overrides)
         path = process_session(Path(job.session), job.session_id, spec, registry, Path(job.out),
                                export=job.export)
         verdict = (read_verdict(path) or {}).get("status", "") if path else ""
@@ -355,6 +358,7 @@ def batch(
     *,
     plugins: RegistrySpec | None = None,
     export: Sequence[str] = (),
+    overrides: Sequence[str] = (),
     strict: bool = False,
 ) -> list[JobResult]:
     """``imupipe batch``: each session an independent job; returns the failures (``strict``:
@@ -364,12 +368,14 @@ def batch(
     """
     spec = plugins or DEFAULT_SPEC
     registry = spec.make()
-    pipeline_obj = load_pipeline(pipeline, registry)  # bad config: fail before any job starts
+    overrides = tuple(overrides)
+    pipeline_obj = load_pipeline(pipeline, registry, overrides)  # bad config: fail before any job
     export = parse_formats(export, registry)
     runner = registry.get("executors", executor)
     sessions = expand_inputs(inputs, registry, out)
     jobs_list = [
-        Job(str(s), sid, str(pipeline_obj.path.resolve()), str(Path(out).resolve()), spec, export)
+        Job(str(s), sid, str(pipeline_obj.path.resolve()), str(Path(out).resolve()), spec, export,
+            overrides)
         for s, sid in zip(sessions, session_ids(sessions), strict=True)
     ]
     with progress(quiet) as p:
@@ -410,21 +416,25 @@ def status(
     out: Path = Path("imupipe-out"),
     *,
     registry: Registry | None = None,
+    overrides: Sequence[str] = (),
 ) -> str:
     """``imupipe status``: per session, which stages are stale and why; nothing runs.
 
     With no sessions, those recorded in ``out`` (their run manifests). With no
     ``pipeline``, each session is compared with the pipeline its run.json names
-    (the default pipeline for a session never run, or when that file is gone).
+    (the default pipeline for a session never run, or when that file is gone), with the
+    ``--set`` overrides recorded there unless ``overrides`` are given.
     """
     registry = registry or make_registry()
-    given = load_pipeline(pipeline, registry) if pipeline is not None else None
-    loaded: dict[str, Pipeline] = {}
+    overrides = tuple(overrides)
+    given = load_pipeline(pipeline, registry, overrides) if pipeline is not None else None
+    loaded: dict[tuple, Pipeline] = {}
 
     def pipeline_for(manifest: dict | None) -> tuple[Pipeline, str]:
         if given is not None:
             return given, ""
-        recorded = ((manifest or {}).get("pipeline") or {}).get("path")
+        entry = (manifest or {}).get("pipeline") or {}
+        recorded, sets = entry.get("path"), tuple(overrides or entry.get("overrides") or ())
         if recorded and Path(recorded).is_file():
             key, note = str(Path(recorded).resolve()), f" from run.json: {recorded}"
         else:
@@ -432,9 +442,11 @@ def status(
             note = (
                 f" (default; {recorded} recorded in run.json is gone)" if recorded else " (default)"
             )
-        if key not in loaded:
-            loaded[key] = load_pipeline(Path(key), registry)
-        return loaded[key], note
+        if sets:
+            note += f" with --set {' --set '.join(sets)}"
+        if (key, sets) not in loaded:
+            loaded[key, sets] = load_pipeline(Path(key), registry, sets)
+        return loaded[key, sets], note
 
     out = Path(out)
     sessions = [Path(s) for s in sessions]
