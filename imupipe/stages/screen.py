@@ -49,7 +49,8 @@ class ScreenParams(Params):
     """``check_units``: refuse streams whose magnitudes contradict their SI unit;
     ``gap_factor``/``gap_min_s``: a stamp interval longer than both (in nominal intervals,
     in s) is a gap; ``shock_accel_m_s2``/``shock_gyro_rad_s``: one sample this far from both
-    neighbours is a shock; ``splice_min_deg``: smaller gravity jumps are not judged."""
+    neighbours is a shock; ``splice_min_deg``: smaller gravity jumps are not judged;
+    ``leave_out_turns``: drop the turns holding a gap, shock or splice from ``turns``."""
 
     check_units: bool = True
     gap_factor: float = Field(ev.GAP_FACTOR, gt=1)
@@ -57,6 +58,9 @@ class ScreenParams(Params):
     shock_accel_m_s2: float = Field(ev.SHOCK_ACCEL_M_S2, gt=0)
     shock_gyro_rad_s: float = Field(ev.SHOCK_GYRO_RAD_S, gt=0)
     splice_min_deg: float = Field(ev.SPLICE_MIN_DEG, gt=0, le=180)
+    leave_out_turns: bool = True
+    """False: the turns pass unchanged (a pipeline whose turns come from elsewhere, e.g.
+    ferraris' sections); the events still reach the verdict."""
 
 
 def _raw_unit(table: pa.Table) -> str | None:
@@ -114,7 +118,7 @@ def screen(inputs: Mapping[str, pa.Table], params: ScreenParams, solver: BoundSo
     t_end = (turns.column("t_end_ns").to_numpy() - t0) * 1e-9
     bad = np.zeros(turns.num_rows, bool)
     why: dict[str, int] = {}
-    for e in found:
+    for e in found if params.leave_out_turns else ():
         if e.kind in EXCLUDING:
             hit = (t_start <= e.window[1]) & (t_end >= e.window[0]) & ~bad
             if hit.any():
