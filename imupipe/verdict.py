@@ -47,6 +47,7 @@ CHI2_WARN = 2.0
 CHI2_FAIL = 1e4  # residuals 100 times the noise: swapped axes, wrong units (real recordings with
 # unmodelled physics reach 10-1000: a warning that the uncertainties are understated)
 SCALE_RANGE = (0.8, 1.25)  # singular values of M (accel, gyro) for raw SI data
+MAG_FIELD_T = (2e-6, 5e-4)  # the calibrated field magnitude (Earth: 25-65 uT; disturbed up to 500)
 MAG_ANISOTROPY_WARN = 2.0  # ratio of the largest to the smallest singular value of the mag M
 BIAS_WARN = {"accel": 1.5, "gyro": 0.35}  # m/s^2 (~150 mg), rad/s (20 deg/s)
 BIAS_FAIL = {"accel": 3.0, "gyro": 1.75}  # ~300 mg, 100 deg/s
@@ -245,6 +246,14 @@ def value_checks(calibration: Mapping[str, Any]) -> list[Check]:
         sv = np.linalg.svd(M, compute_uv=False)
         si = _is_si(calibration, sensor)
         if sensor == "mag":
+            field = calibration[sensor].get("field_T")
+            if si and isinstance(field, (int, float)):
+                lo, hi = MAG_FIELD_T
+                bad = not lo <= field <= hi
+                out.append(Check("values", "fail" if bad else "pass",
+                                 f"mag: field {field:.3g} T (an Earth field is {lo:g} to {hi:g} T)"
+                                 + (": the raw data are not in tesla (uT? gauss?); give the unit in "
+                                    "a session manifest" if bad else "")))
             ratio = float(sv[0] / sv[-1])
             out.append(Check("values", "warn" if ratio > MAG_ANISOTROPY_WARN else "pass",
                              f"mag: soft-iron anisotropy {ratio:.3g} (largest / smallest singular "

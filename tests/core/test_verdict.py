@@ -157,3 +157,12 @@ def test_turns_left_out_for_saturation_warn():
     d["gyro"]["joint"]["turns_saturated"] = 3  # the one joint fit both triads carry
     v = judge(d)
     assert v["status"] == "warn" and "3 turns left out of the joint fit" in reasons(v)
+
+
+def test_mag_field_in_microtesla_under_tesla_fails():
+    d = doc()
+    d["mag"] = triad(field_T=49.9, sigma=False)  # the ellipsoid radius of data in uT
+    v = judge(d)
+    assert v["status"] == "fail" and "mag: field 49.9 T" in reasons(v)
+    d["mag"] = triad(field_T=49.9e-6, sigma=False)
+    assert judge(d)["status"] == "pass"
