@@ -1,8 +1,8 @@
 """Stage ``map_residuals``: predict every sample under the calibration and map where it fails.
 
 Inputs: the session's raw ``accel`` and ``gyro`` (and ``temperature``), the
-segmentation's ``rests`` and ``turns`` (and ``events`` when the segmentation
-writes them), and the ``calibration`` to judge (the joint refinement's, whose
+segmentation's ``rests`` and ``turns`` (and the ``events`` of ``screen_events``:
+gaps, shocks, splices), and the ``calibration`` to judge (the joint refinement's, whose
 details carry the noise model it fitted: the bias walks). Outputs the per-sample
 residual table (``sample_residuals``) and the residual map (``residual_map``: its
 cells as rows, the whole ``residual_map.json`` document in the schema metadata).
