@@ -1,6 +1,6 @@
 """Stillness segmentation against the simulator's true rests, from one run.
 
-    python bench/segmentation.py [--seeds 3] [--set key=value ...]
+    python bench/segmentation.py [--seeds 3] [--set key=value ...] [--module OTHER/segment.py]
 
 For each scenario (short holds of 2 s and 1.5 s, the gimbal's fast rotations, the
 standard session, hand-held rests vibrating at 4-8 Hz) simulates sessions, runs the
@@ -14,13 +14,14 @@ into a motion, and found rests that match no true rest.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import time
 
 import numpy as np
-import pyarrow as pa
 
 from imupipe.sim.api import simulate_recording
+from imupipe.sim.tremor import add_tremor
 from imupipe.stages import segment
 
 SCENARIOS = {
@@ -30,26 +31,8 @@ SCENARIOS = {
     "standard (5 s holds)": ("standard", dict(warmup_s=60, n_positions=40), None),
     "hand-held 4-8 Hz, holds 2 s": ("sphere_rig_one_stage", dict(warmup_s=60, n_positions=60, rest_s=2.0),
                                     dict(gyro_dps=1.0, accel_mg=5.0)),
+    "hand-held 4-8 Hz, gimbal 2 s": ("gimbal", dict(rest_s=2.0, n_rotations=20), dict(gyro_dps=1.0, accel_mg=5.0)),
 }
-
-
-def add_vibration(streams: dict, rng: np.random.Generator, gyro_dps: float, accel_mg: float) -> dict:
-    """A hand's tremor over the whole session: two tones in 4-8 Hz on random axes, random phase.
-
-    ``gyro_dps``/``accel_mg``: amplitude of each tone (deg/s, mg)."""
-    out = dict(streams)
-    for sensor, amp in (("gyro", np.radians(gyro_dps)), ("accel", accel_mg * 1e-3 * 9.80665)):
-        t = streams[sensor]
-        ts = (t.column("t_ns").to_numpy() - t.column("t_ns").to_numpy()[0]) * 1e-9
-        add = np.zeros((len(ts), 3))
-        for _ in range(2):
-            f, ph = rng.uniform(4, 8), rng.uniform(0, 2 * np.pi)
-            u = rng.normal(size=3)
-            add += amp * np.outer(np.sin(2 * np.pi * f * ts + ph), u / np.linalg.norm(u))
-        for i, c in enumerate("xyz"):
-            t = t.set_column(t.column_names.index(c), c, pa.array(t.column(c).to_numpy() + add[:, i]))
-        out[sensor] = t
-    return out
 
 
 def score(found: np.ndarray, true: np.ndarray) -> dict:
@@ -83,7 +66,13 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--set", nargs="*", default=[], help="segment params, key=value (JSON values)")
+    ap.add_argument("--module", help="another segment.py to measure (e.g. main's: the before)")
     args = ap.parse_args()
+    global segment
+    if args.module:
+        spec = importlib.util.spec_from_file_location("imupipe.stages.segment_other", args.module)
+        segment = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(segment)
     params = segment.SegmentParams(**{k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)})
     print(f"segment_stillness version {segment.STAGE.version}, params {params.model_dump()}")
     print(f"{'scenario':32s} {'found':>7s} {'trim/end s':>10s} {'over mean':>9s} {'over max':>9s} "
@@ -94,7 +83,7 @@ def main() -> None:
             rec, truth = simulate_recording(protocol, None, seed, **kw)
             d = dict(rec.device("imu"))
             if vib:
-                d = add_vibration(d, np.random.default_rng([seed, 7]), **vib)
+                d = add_tremor(d, np.random.default_rng([seed, 7]), **vib)
             t0 = time.perf_counter()
             try:
                 r = segment.STAGE.func(d, params, None)["rests"]
