@@ -5,7 +5,8 @@ Tables are recognised by their schema, not by the pipeline's names for them:
 gyro's turn residuals), ``turn_residuals`` (with the same stage's rest rows: the
 whitened residuals of a joint fit and its chi2/dof per block), ``validation``
 (turn-angle errors, eq. 39), ``rests`` (positions on the sphere) and ``stillness``
-(what the segmentation saw, the signals with the rests shaded). Needs the
+(what the segmentation saw, the signals with the rests shaded), ``noise`` with ``allan``
+(the noise stage's terms and Allan plot). Needs the
 ``report`` extra (matplotlib).
 """
 
@@ -22,7 +23,7 @@ import pyarrow as pa
 from .. import schemas
 from ..errors import require
 from ..io import atomic_path, write_text
-from . import residual_figures, segment_figures
+from . import noise_figures, residual_figures, segment_figures
 
 
 def _col(table: pa.Table, name: str) -> np.ndarray:
@@ -208,6 +209,12 @@ class ReportExporter:
                     figure("residuals_in_time", "whitened residuals along the session",
                            lambda fig, s=samples, doc=doc: residual_figures.draw_time_series(fig, s, doc),
                            panels=True)
+            elif sid == "noise" and t.num_rows:
+                lines += noise_figures.lines(t)
+                curves = next((x for x in results.values() if schemas.schema_of(x) == "allan"), None)
+                if curves is not None and curves.num_rows:
+                    figure("allan_deviation", "Allan deviation of the longest rests",
+                           lambda fig, c=curves: noise_figures.draw(fig, c), panels=True)
             elif sid == "stillness" and t.num_rows:
                 lines += segment_figures.lines(t)
                 figure("rests_in_time", "raw signals with the rests found shaded",
