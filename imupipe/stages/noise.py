@@ -1,7 +1,8 @@
 """The ``estimate_noise`` stage: the recording's own noise model from its longest rests.
 
 Per triad and axis: the overlapping Allan deviation of the ``max_rests`` longest rests of at
-least ``min_rest_s`` (pooled per tau), fitted with quantisation, white noise, bias
+least ``min_rest_s`` (pooled per tau; each less its linear dependence on the temperature),
+fitted with quantisation, white noise, bias
 instability, rate random walk and rate ramp (``imupipe.allan``); per rest, the effective
 sample size of its mean under the measured (coloured) noise. A static recording is one long
 rest: ``pipelines/noise.toml`` is segmentation and this stage, nothing else.
@@ -32,13 +33,25 @@ class NoiseParams(Params):
     """``max_rests``: how many of the longest rests are pooled; ``min_rest_s``: shorter rests
     are not used for the Allan curve (they still get an effective sample size);
     ``per_decade``: taus per decade; ``max_tau_fraction``: longest tau as a fraction of a rest;
-    ``terms``: the terms fitted (others held at 0)."""
+    ``terms``: the terms fitted (others held at 0); ``detrend_temperature``: remove from each
+    rest its linear dependence on the temperature (when wired) before the Allan deviation."""
 
     max_rests: int = Field(5, ge=1)
     min_rest_s: float = Field(10.0, gt=0)
     per_decade: int = Field(8, ge=2, le=40)
     max_tau_fraction: float = Field(1 / 3, gt=0, le=0.5)
     terms: tuple[str, ...] = allan.TERMS
+    detrend_temperature: bool = True
+
+
+def temperature_free(v: np.ndarray, temp: np.ndarray | None) -> np.ndarray:
+    """(n, 3) ``v`` less its least-squares line in the temperature ``temp`` (n,) (a warm-up's
+    thermal drift is physics, not noise); ``v`` unchanged without a temperature change."""
+    if temp is None or len(v) < 3 or np.ptp(temp) <= 0:
+        return v
+    A = np.column_stack([np.ones(len(temp)), temp - temp.mean()])
+    coef, *_ = np.linalg.lstsq(A, v, rcond=None)
+    return v - np.outer(A[:, 1], coef[1])
 
 
 def _rate(t_ns: np.ndarray) -> float:
@@ -72,9 +85,15 @@ def estimate(inputs: Mapping[str, pa.Table], params: NoiseParams, solver: BoundS
         spans = [(np.searchsorted(t_ns, t0 + int(round(a * 1e9)), "left"),
                   np.searchsorted(t_ns, t0 + int(round(b * 1e9)), "right"))
                  for a, b in zip(rests.t_start_s, rests.t_end_s, strict=True)]
+        temp = None
+        if params.detrend_temperature and "temperature" in inputs:
+            tt = inputs["temperature"].column("t_ns").to_numpy()
+            temp = np.interp(t_ns.astype(float), tt.astype(float), inputs["temperature"].column("temperature").to_numpy())
+        clean = {i: temperature_free(v[spans[i][0]:spans[i][1]], None if temp is None else temp[spans[i][0]:spans[i][1]])
+                 for i in order}
         fits = []
         for k, axis in enumerate("xyz"):
-            curve = allan.allan_curve([v[spans[i][0]:spans[i][1], k] for i in order], rate,
+            curve = allan.allan_curve([clean[i][:, k] for i in order], rate,
                                       params.per_decade, params.max_tau_fraction)
             fit = allan.fit_curve(curve, params.terms)
             fits.append(fit)
@@ -114,9 +133,9 @@ def estimate(inputs: Mapping[str, pa.Table], params: NoiseParams, solver: BoundS
 
 STAGE = Stage(
     name="estimate_noise", version="1", func=estimate,
-    inputs={"rests": "rests", "accel": "accel", "gyro": "gyro", "mag": "mag"},
+    inputs={"rests": "rests", "accel": "accel", "gyro": "gyro", "mag": "mag", "temperature": "temperature"},
     outputs={"noise": "noise", "allan": "allan", "rest_noise": "rest_noise"}, params=NoiseParams,
-    optional_inputs=frozenset({"accel", "gyro", "mag"}),
+    optional_inputs=frozenset({"accel", "gyro", "mag", "temperature"}),
     description="Allan deviation of the longest rests, fitted (noise density, random walk, ...); "
                 "effective sample size per rest",
 )

@@ -80,7 +80,7 @@ def test_effective_sample_size_white_and_walking():
         t = out["rest_noise"].to_pylist()
         short = [r for r in t if r["sensor"] == "gyro" and 3 < r["duration_s"] < 8]
         medians[name] = np.median([np.mean(r["n_eff"]) / r["count"] for r in short])
-    assert 0.8 < medians["white"] <= 1.0     # white noise: the mean is worth every sample
+    assert 0.85 < medians["white"] <= 1.0    # white noise: the mean is worth every sample (0.95 measured)
     assert medians["walk"] < 0.3             # a walking bias: far fewer
 
 
