@@ -38,7 +38,8 @@ from ..rotations import hold_intervals, pad_turns, quat_to_rotvec, turn_quaterni
 
 EDGE_MEAN_S = 0.05  # s: the short mean of the raw signals that places the edges
 CALM = 1.54  # the median of a chi with 3 degrees of freedom: a sample as calm as a rest's typical one
-VIBRATION_RATIO = 2.0  # rests tremble when short raw means spread this many times more than white noise
+VIBRATION_RATIO = 2.0
+INITIAL_REST_MOVING = 0.1  # an "initial rest" that moves this fraction of its time is not one  # rests tremble when short raw means spread this many times more than white noise
 
 
 class SegmentParams(Params):
@@ -157,6 +158,7 @@ class Detection:
         if p.initial_rest_s > 0:
             sel = t_s <= t_s[0] + p.initial_rest_s
             self.floor = {"accel": _floor(va, sel, "accelerometer"), "gyro": _floor(vw, sel, "gyroscope")}
+            self._check_initial_rest(va, vw)
         else:
             first = {k: float(np.quantile(v[np.isfinite(v)], p.noise_quantile)) if np.isfinite(v).any() else np.nan
                      for k, v in (("accel", va), ("gyro", vw))}
@@ -182,6 +184,24 @@ class Detection:
         self.vibrating = bool(p.lowpass_s > 0 and max(ratio.values()) > VIBRATION_RATIO * white_ratio)
         self.vibration_ratio = {s: r / white_ratio for s, r in ratio.items()}
         self.holds = [self._grow(i0, i1, (la, lw), (sa, sw)) for i0, i1 in self.cores]
+
+    def _check_initial_rest(self, va: np.ndarray, vw: np.ndarray) -> None:
+        """The pipeline says the first ``initial_rest_s`` are still: refuse when a tenth of it or
+        more moves (windowed variance above the threshold over the recording's quietest
+        windows), instead of taking motion for the noise floor."""
+        p = self.p
+        sel = (self.t_s <= self.t_s[0] + p.initial_rest_s) & np.isfinite(va) & np.isfinite(vw)
+        moving = np.zeros(int(sel.sum()), bool)
+        for v, factor in ((va, p.accel_threshold), (vw, p.gyro_threshold)):
+            quiet = float(np.quantile(v[np.isfinite(v)], p.noise_quantile))
+            moving |= v[sel] > factor * quiet
+        if moving.mean() > INITIAL_REST_MOVING:
+            first = float(self.t_s[np.flatnonzero(sel)[np.argmax(moving)]] - self.t_s[0])
+            raise SolverError(
+                f"segmentation: initial_rest_s = {p.initial_rest_s:g} s, but the first "
+                f"{p.initial_rest_s:g} s are not still: {100 * moving.mean():.0f} % of it moves (from "
+                f"{first:.1f} s); set initial_rest_s = 0 (floor from the recording's own rests) or "
+                "to the length of the true initial rest")
 
     def _core_sigma(self, x: np.ndarray, chunk_s: float = 2.0) -> np.ndarray:
         """(3,) sd of ``x`` (k, 3) about its mean, per axis: the median over pieces of the
@@ -312,6 +332,9 @@ def too_few_message(det: Detection, n: int, needed: int) -> str:
     lengths = det.hold_lengths()
     if len(lengths) >= needed and s["holds_shorter_than_min_rest_s"]:
         fix = f"lower min_rest_s to {max(np.sort(lengths)[::-1][needed - 1] * 0.95, 0.1):.2f}"
+    elif s["candidate_holds"] <= 2 and s["still_fraction"] > 0.9:
+        fix = ("the recording is one long rest (static): for its noise model run it with "
+               "--pipeline noise; to calibrate, record positions joined by turns")
     elif s["still_fraction"] < 0.05:
         fix = ("raise accel_threshold and gyro_threshold (holds that vibrate or drift), or record holds "
                "of at least 1.5 s")

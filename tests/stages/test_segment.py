@@ -134,3 +134,17 @@ def test_imu_tk_mode_is_the_plain_centred_window_test(short_holds):
                               gyro_threshold=4.0, min_rest_s=0.5)
     s = score(segment.STAGE.func(d, p, None)["rests"], truth)
     assert s["found"] >= 0.9 and s["false"] == 0
+
+
+def test_an_initial_rest_that_is_not_there_is_refused(short_holds):
+    _, _, d = short_holds  # a 30-s warm-up, then holds and turns
+    segment.STAGE.func(d, segment.SegmentParams(initial_rest_s=25.0), None)  # true: fine
+    with pytest.raises(SolverError, match=r"initial_rest_s = 50 s, but the first 50 s are not still.*"
+                                          r"set initial_rest_s = 0"):
+        segment.STAGE.func(d, segment.SegmentParams(initial_rest_s=50.0), None)
+
+
+def test_a_static_recording_says_so_when_rests_are_needed():
+    rec, _ = simulate_recording("warmup", None, 1, duration_s=60, start_C=42.0)
+    with pytest.raises(SolverError, match="one long rest .static.: for its noise model run it with --pipeline noise"):
+        segment.STAGE.func(dict(rec.device("imu")), segment.SegmentParams(min_rests=9), None)
