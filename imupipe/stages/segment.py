@@ -39,6 +39,7 @@ from ..rotations import hold_intervals, pad_turns, quat_to_rotvec, turn_quaterni
 EDGE_MEAN_S = 0.05  # s: the short mean of the raw signals that places the edges
 CALM = 1.54  # the median of a chi with 3 degrees of freedom: a sample as calm as a rest's typical one
 VIBRATION_RATIO = 2.0
+FIRST_PASS = 3.0  # the floor is the median windowed variance below this times the noise_quantile
 INITIAL_REST_MOVING = 0.1  # an "initial rest" that moves this fraction of its time is not one  # rests tremble when short raw means spread this many times more than white noise
 
 
@@ -162,7 +163,8 @@ class Detection:
         else:
             first = {k: float(np.quantile(v[np.isfinite(v)], p.noise_quantile)) if np.isfinite(v).any() else np.nan
                      for k, v in (("accel", va), ("gyro", vw))}
-            sel = (va < p.accel_threshold * first["accel"]) & (vw < p.gyro_threshold * first["gyro"])
+            # clearly quiet windows only: slow motion must not raise the floor it is judged by
+            sel = (va < FIRST_PASS * first["accel"]) & (vw < FIRST_PASS * first["gyro"])
             self.floor = {"accel": _floor(va, sel, "accelerometer"), "gyro": _floor(vw, sel, "gyroscope")}
         self.threshold = {"accel": p.accel_threshold * self.floor["accel"],
                           "gyro": p.gyro_threshold * self.floor["gyro"]}
@@ -295,6 +297,8 @@ class Detection:
             "hold_s_max": float(lengths.max()) if len(lengths) else None,
             "holds_shorter_than_min_rest_s": int((lengths < self.p.min_rest_s).sum()),
             "still_fraction": float(still.mean()),
+            "still_fraction_accel": float(np.mean(self.stat["accel"] < 1)),
+            "still_fraction_gyro": float(np.mean(self.stat["gyro"] < 1)),
             "noise_floor": self.floor, "threshold": self.threshold,
             "floor_from": "initial_rest_s" if self.p.initial_rest_s > 0 else "rests",
             "vibrating": self.vibrating, "vibration_ratio": self.vibration_ratio,
@@ -329,12 +333,27 @@ def too_few_message(det: Detection, n: int, needed: int) -> str:
             f"(window_s = {p.window_s:g} s) below accel_threshold = {p.accel_threshold:g} x "
             f"{det.floor['accel']:.3g} (m/s^2)^2 and gyro_threshold = {p.gyro_threshold:g} x "
             f"{det.floor['gyro']:.3g} (rad/s)^2 (noise floor from {s['floor_from']})")
-    lengths = det.hold_lengths()
-    if len(lengths) >= needed and s["holds_shorter_than_min_rest_s"]:
-        fix = f"lower min_rest_s to {max(np.sort(lengths)[::-1][needed - 1] * 0.95, 0.1):.2f}"
+    lengths = np.sort(det.hold_lengths())[::-1]
+    qa, qg = det.stat["accel"] < 1, det.stat["gyro"] < 1
+    g_given_a = float(qg[qa].mean()) if qa.any() else 1.0  # the gyro still where the accel is
+    a_given_g = float(qa[qg].mean()) if qg.any() else 1.0
+    saw += (f"; where the accel is still the gyro is too {100 * g_given_a:.0f} % of the time, and the "
+            f"accel where the gyro is {100 * a_given_g:.0f} %")
+    shaky = ("gyro" if g_given_a < 0.8 and g_given_a < a_given_g else
+             "accel" if a_given_g < 0.8 and a_given_g < g_given_a else None)
+    if len(lengths) >= needed and s["holds_shorter_than_min_rest_s"] and lengths[needed - 1] >= 0.5:
+        fix = f"lower min_rest_s to {lengths[needed - 1] * 0.95:.2f}"
     elif s["candidate_holds"] <= 2 and s["still_fraction"] > 0.9:
         fix = ("the recording is one long rest (static): for its noise model run it with "
                "--pipeline noise; to calibrate, record positions joined by turns")
+    elif shaky:
+        other = "accel" if shaky == "gyro" else "gyro"
+        sel = (det.stat[other] < 1) & (det.stat[shaky] >= 1)
+        level = float(np.quantile(det.stat[shaky][sel], 0.9))
+        factor = getattr(p, f"{shaky}_threshold")
+        fix = (f"the {shaky} moves where the {other} is still (there its variance reaches {level:.3g} x its "
+               f"threshold, 90th percentile): if its holds are noisy or vibrating, raise {shaky}_threshold "
+               f"to about {factor * 1.5 * level:.3g}; else check the {shaky} stream")
     elif s["still_fraction"] < 0.05:
         fix = ("raise accel_threshold and gyro_threshold (holds that vibrate or drift), or record holds "
                "of at least 1.5 s")

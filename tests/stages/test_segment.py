@@ -148,3 +148,19 @@ def test_a_static_recording_says_so_when_rests_are_needed():
     rec, _ = simulate_recording("warmup", None, 1, duration_s=60, start_C=42.0)
     with pytest.raises(SolverError, match="one long rest .static.: for its noise model run it with --pipeline noise"):
         segment.STAGE.func(dict(rec.device("imu")), segment.SegmentParams(min_rests=9), None)
+
+
+def test_a_gyro_that_moves_in_the_holds_is_named_with_the_threshold_to_try(short_holds):
+    _, truth, d = short_holds
+    t = d["gyro"]
+    ts = (t.column("t_ns").to_numpy() - t.column("t_ns").to_numpy()[0]) * 1e-9
+    rng = np.random.default_rng(1)
+    for c in "xyz":  # after the warm-up, the gyro turns 30 times noisier (a failing part)
+        v = t.column(c).to_numpy()
+        t = t.set_column(t.column_names.index(c), c, pa.array(v + (ts > 31) * rng.normal(0, 0.01, len(v))))
+    bad = {**d, "gyro": t}
+    with pytest.raises(SolverError, match="the gyro moves where the accel is still") as e:
+        segment.STAGE.func(bad, segment.SegmentParams(min_rests=9), None)
+    suggested = float(str(e.value).split("raise gyro_threshold to about ")[1].split(";")[0])
+    out = segment.STAGE.func(bad, segment.SegmentParams(min_rests=9, gyro_threshold=suggested), None)
+    assert score(out["rests"], truth)["found"] >= 0.8
