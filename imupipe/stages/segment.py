@@ -344,8 +344,8 @@ def too_few_message(det: Detection, n: int, needed: int) -> str:
     if len(lengths) >= needed and s["holds_shorter_than_min_rest_s"] and lengths[needed - 1] >= 0.5:
         fix = f"lower min_rest_s to {lengths[needed - 1] * 0.95:.2f}"
     elif s["candidate_holds"] <= 2 and s["still_fraction"] > 0.9:
-        fix = ("the recording is one long rest (static): for its noise model run it with "
-               "--pipeline noise; to calibrate, record positions joined by turns")
+        fix = ("the recording is one long rest (static): for its noise model run it with the noise "
+               "pipeline (--pipeline pipelines/noise.toml); to calibrate, record positions joined by turns")
     elif shaky:
         other = "accel" if shaky == "gyro" else "gyro"
         sel = (det.stat[other] < 1) & (det.stat[shaky] >= 1)

@@ -146,7 +146,7 @@ def test_an_initial_rest_that_is_not_there_is_refused(short_holds):
 
 def test_a_static_recording_says_so_when_rests_are_needed():
     rec, _ = simulate_recording("warmup", None, 1, duration_s=60, start_C=42.0)
-    with pytest.raises(SolverError, match="one long rest .static.: for its noise model run it with --pipeline noise"):
+    with pytest.raises(SolverError, match=r"one long rest \(static\): for its noise model run it with the noise pipeline"):
         segment.STAGE.func(dict(rec.device("imu")), segment.SegmentParams(min_rests=9), None)
 
 
@@ -164,3 +164,15 @@ def test_a_gyro_that_moves_in_the_holds_is_named_with_the_threshold_to_try(short
     suggested = float(str(e.value).split("raise gyro_threshold to about ")[1].split(";")[0])
     out = segment.STAGE.func(bad, segment.SegmentParams(min_rests=9, gyro_threshold=suggested), None)
     assert score(out["rests"], truth)["found"] >= 0.8
+
+
+def test_default_pipeline_on_a_static_recording_exits_2_with_the_fix(tmp_path, capsys):
+    from imupipe.cli import main
+    from imupipe.sim.api import simulate
+
+    path = tmp_path / "static.mcap"
+    simulate("warmup", {}, 3, path, quiet=True, params={"duration_s": 60, "start_C": 42.0})
+    assert main(["run", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "static.mcap" in err and "1 rest(s) found, 9 needed" in err
+    assert "pipelines/noise.toml" in err
