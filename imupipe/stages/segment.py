@@ -120,10 +120,12 @@ def _floor(var: np.ndarray, sel: np.ndarray, what: str) -> float:
     return level
 
 
-def _edge(dev: np.ndarray, start: int, stop: int, step: int, z: float) -> tuple[int, int]:
+def _edge(dev: np.ndarray, start: int, stop: int, step: int, z: float,
+          adaptive_calm: bool = False) -> tuple[int, int]:
     """Walking from ``start`` to ``stop`` (exclusive) by ``step`` over ``dev`` (k, c), each
     channel a whitened distance: (the edge, the first index beyond ``z``). The edge: the last
-    index where the channel that first goes beyond ``z`` was calm (``CALM``), moved back twice
+    index where the channel that first goes beyond ``z`` was calm (``CALM``; with
+    ``adaptive_calm``, or the walk's median before it when larger: tremor), moved back twice
     as many samples as it took from there to beyond ``z``; both ``stop - step`` when no
     channel goes beyond ``z``."""
     idx = np.arange(start, stop, step)
@@ -135,7 +137,9 @@ def _edge(dev: np.ndarray, start: int, stop: int, step: int, z: float) -> tuple[
         return int(idx[-1]), int(idx[-1])
     k = beyond[0]
     channel = int(np.argmax(dev[idx[k]]))
-    calm = np.flatnonzero(dev[idx[:k], channel] <= CALM)
+    before = dev[idx[:k], channel]
+    # calm: as close as a typical rest sample (correlated tremor residue sits above a white chi)
+    calm = np.flatnonzero(before <= max(CALM, float(np.median(before)) if k and adaptive_calm else CALM))
     if not len(calm):
         return start - step, int(idx[k])
     # a slow (min-jerk) onset stays under the noise for a while before it is seen: measured on
@@ -239,16 +243,21 @@ class Detection:
         lo_lim = max(int(np.searchsorted(t, t[i0] - reach, "left")), int(np.argmax(seg)))
         hi_lim = min(int(np.searchsorted(t, t[i1] + reach, "right")) - 1, len(t) - 1 - int(np.argmax(seg[::-1])))
         ends = []
-        for edge, lo, hi, step in ((i0, lo_lim, i0, -1), (i1, i1, hi_lim, 1)):
-            near = slice(max(i0, int(np.searchsorted(t, t[i1] - p.window_s))) if step > 0 else i0,
-                         i1 + 1 if step > 0 else min(i1, int(np.searchsorted(t, t[i0] + p.window_s))) + 1)
+        # the core's own last `reach` is walked again: under tremor a slow onset hides in it
+        mid = (i0 + i1) // 2
+        a0 = min(max(int(np.searchsorted(t, t[i0] + reach, "right")) - 1, i0), mid)
+        a1 = max(min(int(np.searchsorted(t, t[i1] - reach, "left")), i1), mid)
+        for edge, lo, hi, step in ((a0, lo_lim, a0, -1), (a1, a1, hi_lim, 1)):
+            near = (slice(max(i0, int(np.searchsorted(t, t[a1] - p.window_s))), a1 + 1) if step > 0 else
+                    slice(a0, min(i1, int(np.searchsorted(t, t[a0] + p.window_s))) + 1))
             rng = slice(lo, hi + 1)
             found = []
             for signals, suffix in ((lp, ""), (raw, "_raw")):
                 dev = np.zeros((len(t), 2))
                 for j, (x, s) in enumerate(zip(signals, ("accel", "gyro"), strict=True)):
                     dev[rng, j] = np.linalg.norm((x[rng] - x[near].mean(axis=0)) / self.sigma[s + suffix], axis=1)
-                found.append(_edge(dev, edge, (lo - 1) if step < 0 else (hi + 1), step, p.edge_sigma))
+                found.append(_edge(dev, edge, (lo - 1) if step < 0 else (hi + 1), step, p.edge_sigma,
+                                   adaptive_calm=self.vibrating))
             (e_lp, x_lp), (e_raw, _) = found
             if self.vibrating:
                 ends.append(e_lp)
@@ -260,7 +269,8 @@ class Detection:
             else:
                 cap = int(np.searchsorted(t, t[max(x_lp, 0)] - h, "left"))
                 ends.append(max(e_raw, cap))
-        return min(ends[0], i0), max(ends[1], i1)
+        lo_end, hi_end = min(ends[0], a0), max(ends[1], a1)
+        return (lo_end, hi_end) if self.vibrating else (min(lo_end, i0), max(hi_end, i1))
 
     def rests(self) -> list[tuple[int, int]]:
         """Index ranges [i0, i1] (inclusive) of the holds, trimmed, at least ``min_rest_s`` long,
