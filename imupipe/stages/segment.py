@@ -8,7 +8,8 @@ stamps are fine) stays below a factor times the noise floor. The floor is measur
 an initial rest when ``initial_rest_s`` > 0; else a low quantile of the windowed variance
 gives a first pass, and the floor is the median windowed variance inside the rests that
 pass finds (the recording's own noise, vibration included). Each core run is then grown
-back over the half window it lost: walking outward from the core over short (50 ms)
+back over the half window it lost: walking outward (from inside the core's last half
+window, where tremor can hide a slow onset) over short (50 ms)
 means of the raw signals, a triad whose whitened distance from the local rest mean
 exceeds ``edge_sigma`` marks motion; the rest ends at that triad's last typical sample
 (distance at most the median of a 3-dof chi) moved back twice the time the motion took
