@@ -88,8 +88,10 @@ def estimate(inputs: Mapping[str, pa.Table], params: NoiseParams, solver: BoundS
         temp = None
         if params.detrend_temperature and "temperature" in inputs:
             tt = inputs["temperature"].column("t_ns").to_numpy()
-            temp = np.interp(t_ns.astype(float), tt.astype(float), inputs["temperature"].column("temperature").to_numpy())
-        clean = {i: temperature_free(v[spans[i][0]:spans[i][1]], None if temp is None else temp[spans[i][0]:spans[i][1]])
+            temp = np.interp(t_ns.astype(float), tt.astype(float),
+                             inputs["temperature"].column("temperature").to_numpy())
+        clean = {i: temperature_free(v[spans[i][0]:spans[i][1]],
+                                     None if temp is None else temp[spans[i][0]:spans[i][1]])
                  for i in order}
         fits = []
         for k, axis in enumerate("xyz"):

@@ -38,10 +38,10 @@ from ..rotations import hold_intervals, pad_turns, quat_to_rotvec, turn_quaterni
 
 
 EDGE_MEAN_S = 0.05  # s: the short mean of the raw signals that places the edges
-CALM = 1.54  # the median of a chi with 3 degrees of freedom: a sample as calm as a rest's typical one
-VIBRATION_RATIO = 2.0
-FIRST_PASS = 3.0  # the floor is the median windowed variance below this times the noise_quantile
-INITIAL_REST_MOVING = 0.1  # an "initial rest" that moves this fraction of its time is not one  # rests tremble when short raw means spread this many times more than white noise
+CALM = 1.54  # median of a 3-dof chi: a sample as calm as a rest's typical one
+VIBRATION_RATIO = 2.0  # holds tremble when short raw means spread this many times more than white
+FIRST_PASS = 3.0  # the floor: median windowed variance below this times the noise_quantile
+INITIAL_REST_MOVING = 0.1  # an "initial rest" that moves this fraction of its time is not one
 
 
 class SegmentParams(Params):
