@@ -39,6 +39,7 @@ from .linearised import Linearised, fit
 TRANSLATION_M = 0.15  # a motion that moves the unit further than this is a carry, not a rotation
 POWER_GAP_S = 1.0  # a gap in the samples longer than this is a power cycle (new turn-on bias)
 EXCLUDING = ("gap", "shock", "splice", "saturation")  # events that forbid integrating across
+THERMAL_SPAN_C = 1.0  # rests spanning less cannot tell k from the bias
 ESS_BATCHES = 8  # batch means per rest that measure its samples' correlation
 
 
@@ -157,14 +158,18 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
              accel: TriadCalibration, gyro: TriadCalibration, gravity: float,
              q_accel: np.ndarray | None = None, q_gyro: np.ndarray | None = None,
              temperature: tuple[np.ndarray, np.ndarray] | None = None,
-             events: list[Event] = (), knot_s: float = 0.25, max_iter: int = 10) -> Evaluation:
+             events: list[Event] = (), knot_s: float = 0.25, max_iter: int = 10,
+             refit: bool = True) -> Evaluation:
     """The per-sample model of a session under ``accel``/``gyro`` (held fixed).
 
     ``streams``: ``{"accel": (t (k,) s, y (k, 3)), "gyro": ...}`` raw, seconds from the
     session's first sample (the rests' clock); ``turns``: the motions between consecutive rests;
     ``q_*``: the bias random walks' intensities (per axis; the joint fit's); ``temperature``:
     (t, T degC) for the samples inside motions; ``events``: those of the recording (motions
-    overlapping a gap, shock, splice or saturation are left out).
+    overlapping a gap, shock, splice or saturation are left out); ``refit``: the calibration is
+    refitted to every sample with the nuisances (the map then judges the model, not the
+    estimation error of a calibration fitted to rest means and turn end-points only, which
+    the samples of long turns resolve better); else it is held fixed.
     """
     events = list(events)
     t_a, y_a = streams["accel"]
@@ -180,14 +185,18 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
     noise = Noise.from_rests(rests, q_accel, q_gyro)
     white_rests, rests = rests, effective_counts(rests, streams)
     power = power_on_rests(rests, t_a)
+    # the temperature coefficients count among the calibration's parameters (leverage, and what a
+    # candidate term is projected off) where the rests span enough temperature to determine them
+    T = rests.temperature
+    thermal = bool(np.all(np.isfinite(T)) and len(T) and np.ptp(T) >= THERMAL_SPAN_C)
 
     def build(sampled_turns: np.ndarray) -> tuple[JointModel, Linearised]:
         acc = MotionAccel.select(t_a, y_a, rests, kept)
         acc_keep = np.isin(acc.motion, sampled_turns)
         acc = MotionAccel(acc.t[acc_keep], acc.y[acc_keep], acc.motion[acc_keep])
-        model = JointModel(rests, kept, gravity, start, noise, fit_k=False, accel=acc, knot_s=knot_s,
+        model = JointModel(rests, kept, gravity, start, noise, fit_k=thermal, accel=acc, knot_s=knot_s,
                            power_on=power, temperature=temperature)
-        return model, fit(model, max_iter=max_iter, fixed_globals=True)
+        return model, fit(model, max_iter=max_iter, fixed_globals=not refit)
 
     sampled = np.arange(len(keep))
     model, lin = build(sampled)

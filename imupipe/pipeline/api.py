@@ -29,6 +29,7 @@ from ..plugins import Registry, make_registry
 from ..progress import progress
 from ..threads import blas_threads as check_blas_threads
 from ..threads import limited_blas
+from ..verdict import read_verdict
 from .cache import Cache, claimant, distribution, read_manifest, reader_identity, session_digest
 from .config import default_pipeline_path, load_pipeline
 from .dag import Pipeline, Ref
@@ -73,6 +74,7 @@ class Job:
     out: str
     registry: RegistrySpec = field(default_factory=RegistrySpec)
     export: tuple[str, ...] = ()  # format exporters (``--export``)
+    overrides: tuple[str, ...] = ()  # ``--set STAGE.PARAM=VALUE`` (and ``--device``)
     blas_threads: int | None = None  # None: the worker's $IMUPIPE_BLAS_THREADS, else 1
 
     def failed(self, reason: str) -> JobResult:
@@ -84,6 +86,7 @@ class JobResult:
     session: str
     status: str  # ok | failed
     detail: str  # the calibration.json written, or why the session failed
+    verdict: str = ""  # pass | warn | fail of the calibration written (imupipe.verdict)
 
 
 # --------------------------------------------------------------------------- one session
@@ -134,7 +137,7 @@ def _export_names(pipeline: Pipeline, registry: Registry) -> list[str]:
     if pipeline.export_calibration:
         names.append(CALIBRATION)
     if pipeline.export_reports:
-        for name in ("report", "residual_map", "diagnosis"):
+        for name in ("report", "residual_map", "diagnosis", "noise_json"):
             if name in registry.names("exporters"):
                 names += getattr(registry.get("exporters", name), "writes", ())
     return names
@@ -149,7 +152,7 @@ def _remove(path: Path) -> None:
 
 def export_context(session: str, pipeline: Pipeline, stages: dict[str, dict],
                    raw_units: dict[str, str] | None) -> dict:
-    """What every exporter is told besides its tables (also part of its files' cache key)."""
+    """What every exporter is told besides its tables and the verdict (part of the cache key)."""
     return {
         "session": session,
         "pipeline": pipeline.name,
@@ -159,6 +162,14 @@ def export_context(session: str, pipeline: Pipeline, stages: dict[str, dict],
     }
 
 
+def verdict_inputs(stages: dict[str, dict], stream_facts: dict | None) -> dict:
+    """What the verdict is made from (``run_verdict``): every stage output's digest and the
+    streams' facts; in the export cache key instead of the verdict itself, so that a warm run
+    or batch decides from run.json alone, without computing it."""
+    return {"outputs": {k: r.get("outputs") or {} for k, r in sorted(stages.items())},
+            "stream_facts": stream_facts or {}}
+
+
 def _exporters(pipeline: Pipeline, registry: Registry) -> list[tuple[str, object, tuple]]:
     """(name, exporter, the refs of the tables it gets) of the pipeline's exports, in order."""
     out = []
@@ -166,7 +177,7 @@ def _exporters(pipeline: Pipeline, registry: Registry) -> list[tuple[str, object
         out.append(("calibration_json", registry.get("exporters", "calibration_json"),
                     pipeline.export_calibration))
     if pipeline.export_reports:
-        for name in ("residual_map", "diagnosis", "report"):  # the first two need no extra
+        for name in ("residual_map", "diagnosis", "noise_json", "report"):  # only report needs an extra
             if name in registry.names("exporters"):
                 out.append((name, registry.get("exporters", name), pipeline.export_reports))
             elif name == "report":
@@ -174,9 +185,10 @@ def _exporters(pipeline: Pipeline, registry: Registry) -> list[tuple[str, object
     return out
 
 
-def _export_key(name: str, exporter, refs, stages: dict, context: dict, registry: Registry) -> str:
+def _export_key(name: str, exporter, refs, stages: dict, context: dict, verdict: dict,
+                registry: Registry) -> str:
     return export_key(name, exporter, distribution(registry, "exporters", name),
-                      table_digests(refs, stages), context)
+                      table_digests(refs, stages), {**context, "verdict_inputs": verdict})
 
 
 def _export(run: SessionRun, registry: Registry, run_dir: Path, formats: Sequence[str] = ()
@@ -185,15 +197,27 @@ def _export(run: SessionRun, registry: Registry, run_dir: Path, formats: Sequenc
     pipeline = run.pipeline
     stages = {k: r.to_dict() for k, r in run.records.items()}
     context = export_context(str(run.session), pipeline, stages, run.raw_units)
-    cache_root = run.cache.root
+    verdict = verdict_inputs(stages, run.stream_facts)
+    calibration = {}
+    full: dict = {}
+
+    def full_context() -> dict:  # the verdict is computed only when an exporter has to run
+        if not full:
+            full.update(context)
+            calibration.update({str(r): t for r in pipeline.export_calibration
+                                if (t := run.table(r)) is not None})
+            if calibration:
+                full["verdict"] = run_verdict(run, calibration, context["raw_units"])
+        return full
+
     written = None
     for name, exporter, refs in _exporters(pipeline, registry):
         def tables(refs=refs):
             return {str(r): t for r in refs if (t := run.table(r)) is not None}
 
-        key = _export_key(name, exporter, refs, stages, context, registry)
+        key = _export_key(name, exporter, refs, stages, context, verdict, registry)
         try:
-            paths = run_cached(name, exporter, key, tables, context, run_dir, cache_root)
+            paths = run_cached(name, exporter, key, tables, full_context, run_dir, run.cache.root)
         except MissingExtraError as exc:  # the calibration stands; say how to get reports
             if name != "report":
                 raise
@@ -204,9 +228,7 @@ def _export(run: SessionRun, registry: Registry, run_dir: Path, formats: Sequenc
     # export/ always matches calibration.json: cleared on every run, then the formats asked for
     results = {}
     if formats:
-        calibration = {str(r): t for r in pipeline.export_calibration
-                       if (t := run.table(r)) is not None}
-        context = {**context, "stream_facts": run.stream_facts, "device": pipeline.device}
+        context = {**full_context(), "stream_facts": run.stream_facts, "device": pipeline.device}
         noise = {f"{k}.{p}": run.table(Ref(k, p)) for k, node in pipeline.nodes.items()
                  for p, sid in node.stage.outputs.items() if sid == "noise"}
         results = {**calibration, **noise_tables({k: t for k, t in noise.items() if t is not None})}
@@ -236,13 +258,40 @@ def up_to_date(session: Path, session_id: str, pipeline: Pipeline, registry: Reg
         return None
     stages = manifest.get("stages") or {}
     context = export_context(str(session), pipeline, stages, manifest.get("raw_units"))
+    verdict = verdict_inputs(stages, manifest.get("stream_facts"))
     for name, exporter, refs in _exporters(pipeline, registry):
         if not cacheable(exporter):
             return None
-        key = _export_key(name, exporter, refs, stages, context, registry)
+        key = _export_key(name, exporter, refs, stages, context, verdict, registry)
         if in_place(run_dir, name, key) is None:
             return None
     return run_dir / CALIBRATION
+
+
+VERDICT_SCHEMAS = ("validation", "control_errors", "events", "residual_map", "rests")
+
+
+def run_verdict(run: SessionRun, calibration: dict, raw_units: dict) -> dict:
+    """``verdict.judge`` on what the run produced: the calibration as exported, every output
+    of a schema the checks read (the reports' rests first), and the streams' facts."""
+    from ..exporters import with_raw_units
+    from ..models import Calibration
+    from ..schemas import schema_of
+    from ..verdict import judge
+
+    doc = with_raw_units(Calibration.from_tables(*calibration.values()).to_dict(), raw_units)
+    tables = {str(r): t for r in run.pipeline.export_reports
+              if (t := run.table(r)) is not None and schema_of(t) == "rests"}
+    for name, node in run.pipeline.nodes.items():
+        for port, sid in node.stage.outputs.items():
+            ref = Ref(name, port)
+            if sid in VERDICT_SCHEMAS and sid != "rests" and (t := run.table(ref)) is not None:
+                tables[str(ref)] = t
+    if not any(schema_of(t) == "rests" for t in tables.values()):
+        tables.update({f"{n}.{p}": t for n, node in run.pipeline.nodes.items()
+                       for p, sid in node.stage.outputs.items()
+                       if sid == "rests" and (t := run.table(Ref(n, p))) is not None})
+    return judge(doc, tables, run.stream_facts)
 
 
 # --------------------------------------------------------------------------- run
@@ -256,8 +305,9 @@ def run_sessions(
     *,
     registry: Registry | None = None,
     export: Sequence[str] = (),
-    blas_threads: int | None = None,
+    overrides: Sequence[str] = (),
     diagnose: bool = False,
+    blas_threads: int | None = None,
 ) -> list[Path]:
     """``imupipe run``: every session in turn; a failing session does not stop the others.
     ``diagnose``: the pipeline's residual map stage runs as the diagnosis (``imupipe diagnose``).
@@ -268,7 +318,8 @@ def run_sessions(
     """
     check_blas_threads(blas_threads)  # a bad value fails before anything is read
     registry = registry or make_registry()
-    spec = load_pipeline(pipeline, registry, diagnose=diagnose)  # bad config: fail before reading data
+    # bad config: fail before reading any data
+    spec = load_pipeline(pipeline, registry, tuple(overrides), diagnose=diagnose)
     export = parse_formats(export, registry)
     # the same file named twice is one session
     sessions = list({Path(s).resolve(): Path(s) for s in sessions}.values())
@@ -311,11 +362,12 @@ def run_job(job: Job) -> JobResult:
     """Worker: one session in its own process; never raises (a failure is a result)."""
     try:
         registry = job.registry.make()
-        spec = load_pipeline(Path(job.pipeline), registry)
+        spec = load_pipeline(Path(job.pipeline), registry, job.overrides)
         with limited_blas(job.blas_threads):
             path = process_session(Path(job.session), job.session_id, spec, registry, Path(job.out),
                                    export=job.export)
-        return JobResult(job.session, "ok", str(path) if path else "(no calibration exported)")
+        verdict = (read_verdict(path) or {}).get("status", "") if path else ""
+        return JobResult(job.session, "ok", str(path) if path else "(no calibration exported)", verdict)
     except ImupipeError as exc:
         return job.failed(str(exc))
     except Exception as exc:  # noqa: BLE001 - the batch reports it and goes on with the others
@@ -392,9 +444,12 @@ def batch(
     *,
     plugins: RegistrySpec | None = None,
     export: Sequence[str] = (),
+    overrides: Sequence[str] = (),
+    strict: bool = False,
     blas_threads: int | None = None,
 ) -> list[JobResult]:
-    """``imupipe batch``: each session an independent job; returns the failures.
+    """``imupipe batch``: each session an independent job; returns the failures (``strict``:
+    and the sessions whose verdict is warn or fail).
 
     Prints a summary table (session, status, output or reason). A session with
     nothing to recompute or rewrite (``up_to_date``) is not dispatched. Each job runs
@@ -404,13 +459,14 @@ def batch(
     check_blas_threads(blas_threads)
     spec = plugins or DEFAULT_SPEC
     registry = spec.make()
-    pipeline_obj = load_pipeline(pipeline, registry)  # bad config: fail before any job starts
+    overrides = tuple(overrides)
+    pipeline_obj = load_pipeline(pipeline, registry, overrides)  # bad config: fail before any job
     export = parse_formats(export, registry)
     runner = registry.get("executors", executor)
     sessions = expand_inputs(inputs, registry, out)
     jobs_list = [
         Job(str(s), sid, str(pipeline_obj.path.resolve()), str(Path(out).resolve()), spec, export,
-            blas_threads)
+            overrides, blas_threads)
         for s, sid in zip(sessions, session_ids(sessions), strict=True)
     ]
     # a session with nothing to recompute or rewrite is not sent to a worker at all
@@ -422,7 +478,8 @@ def batch(
             except ImupipeError:
                 done = None  # the job says what is wrong
             if done is not None:
-                results[i] = JobResult(job.session, "ok", str(done))
+                verdict = (read_verdict(done) or {}).get("status", "")
+                results[i] = JobResult(job.session, "ok", str(done), verdict)
     todo = [i for i, r in enumerate(results) if r is None]
     if len(todo) < len(jobs_list):
         log.info("%d of %d sessions are up to date", len(jobs_list) - len(todo), len(jobs_list))
@@ -435,7 +492,7 @@ def batch(
             for i, r in zip(todo, ran, strict=True):
                 results[i] = r
     print(summary(results))
-    return [r for r in results if r.status != "ok"]
+    return [r for r in results if r.status != "ok" or (strict and r.verdict not in ("pass", ""))]
 
 
 def _takes_on_result(executor) -> bool:
@@ -450,7 +507,7 @@ def _takes_on_result(executor) -> bool:
 def summary(results: Sequence[JobResult]) -> str:
     """A plain table: session, status, output or reason."""
     rows = [("session", "status", "output / reason")] + [
-        (r.session, r.status, r.detail) for r in results
+        (r.session, f"{r.status} ({r.verdict})" if r.verdict else r.status, r.detail) for r in results
     ]
     w0, w1 = (max(len(r[i]) for r in rows) for i in (0, 1))
     failed = sum(r.status != "ok" for r in results)
@@ -468,21 +525,25 @@ def status(
     out: Path = Path("imupipe-out"),
     *,
     registry: Registry | None = None,
+    overrides: Sequence[str] = (),
 ) -> str:
     """``imupipe status``: per session, which stages are stale and why; nothing runs.
 
     With no sessions, those recorded in ``out`` (their run manifests). With no
     ``pipeline``, each session is compared with the pipeline its run.json names
-    (the default pipeline for a session never run, or when that file is gone).
+    (the default pipeline for a session never run, or when that file is gone), with the
+    ``--set`` overrides recorded there unless ``overrides`` are given.
     """
     registry = registry or make_registry()
-    given = load_pipeline(pipeline, registry) if pipeline is not None else None
-    loaded: dict[str, Pipeline] = {}
+    overrides = tuple(overrides)
+    given = load_pipeline(pipeline, registry, overrides) if pipeline is not None else None
+    loaded: dict[tuple, Pipeline] = {}
 
     def pipeline_for(manifest: dict | None) -> tuple[Pipeline, str]:
         if given is not None:
             return given, ""
-        recorded = ((manifest or {}).get("pipeline") or {}).get("path")
+        entry = (manifest or {}).get("pipeline") or {}
+        recorded, sets = entry.get("path"), tuple(overrides or entry.get("overrides") or ())
         if recorded and Path(recorded).is_file():
             key, note = str(Path(recorded).resolve()), f" from run.json: {recorded}"
         else:
@@ -490,9 +551,11 @@ def status(
             note = (
                 f" (default; {recorded} recorded in run.json is gone)" if recorded else " (default)"
             )
-        if key not in loaded:
-            loaded[key] = load_pipeline(Path(key), registry)
-        return loaded[key], note
+        if sets:
+            note += f" with --set {' --set '.join(sets)}"
+        if (key, sets) not in loaded:
+            loaded[key, sets] = load_pipeline(Path(key), registry, sets)
+        return loaded[key, sets], note
 
     out = Path(out)
     sessions = [Path(s) for s in sessions]

@@ -3,7 +3,8 @@
 An exporter's files depend only on the tables it is given and the run's context,
 so they are keyed like a stage run: the sha256 of the exporter's name, ``version``
 and plugin distribution, the content digests of its input tables and the context
-(session, pipeline name, imupipe version, skipped stages, raw units). Then:
+(session, pipeline name, imupipe version, skipped stages, raw units, and what the
+run's verdict is made from: every stage output's digest and the streams' facts). Then:
 
 * the session folder's ``.exports.json`` records, per exporter, the key its files
   were made with and each file's size and mtime: when the key is the same and the
@@ -30,7 +31,7 @@ from .cache import canonical, sha256
 MARKER = ".exports.json"
 EXPORTS_DIR = "exports"
 INDEX = "files.json"
-CONTEXT_KEYS = ("session", "pipeline", "imupipe_version", "skipped", "raw_units")
+CONTEXT_KEYS = ("session", "pipeline", "imupipe_version", "skipped", "raw_units", "verdict_inputs")
 
 
 def export_key(name: str, exporter: Any, distribution: dict | None, digests: Mapping[str, str],
@@ -108,11 +109,13 @@ def _remove(path: Path) -> None:
 
 
 def run_cached(name: str, exporter: Any, key: str, tables: Callable[[], Mapping[str, Any]],
-               context: Mapping[str, Any], run_dir: Path, cache_root: Path) -> list[Path]:
-    """Export through the cache; ``tables()`` is called only when the exporter has to run."""
+               context: Callable[[], Mapping[str, Any]], run_dir: Path, cache_root: Path
+               ) -> list[Path]:
+    """Export through the cache; ``tables()`` and ``context()`` are called only when the
+    exporter has to run."""
     run_dir = Path(run_dir)
     if not cacheable(exporter):
-        return exporter.export(tables(), context, run_dir)
+        return exporter.export(tables(), context(), run_dir)
     here = in_place(run_dir, name, key)
     if here is not None:
         return here
@@ -129,7 +132,7 @@ def run_cached(name: str, exporter: Any, key: str, tables: Callable[[], Mapping[
             _copy(entry / rel, dst)
         _mark(run_dir, name, key, paths)
         return paths
-    written = [Path(p) for p in exporter.export(tables(), context, run_dir)]
+    written = [Path(p) for p in exporter.export(tables(), context(), run_dir)]
     inside = [p for p in written if p.resolve().is_relative_to(run_dir.resolve()) and p.is_file()]
     rels = [p.resolve().relative_to(run_dir.resolve()).as_posix() for p in inside]
     for rel, src in zip(rels, inside):

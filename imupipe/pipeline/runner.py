@@ -27,7 +27,7 @@ import pyarrow as pa
 
 from .. import __version__, schemas
 from ..errors import ImupipeError, SchemaError
-from ..ingest import read_recording, stream_facts
+from ..ingest import read_recording, sections_table, stream_facts
 from ..plugins import Registry
 from .cache import (
     Cache,
@@ -135,6 +135,8 @@ class _Source:
         if self._streams is None:
             recording = read_recording(self.path, self.registry, self.pipeline.reader)
             self._streams = dict(recording.device(self.pipeline.device))
+            if recording.meta.get("sections"):  # a manifest's [sections]: session.sections
+                self._streams["sections"] = sections_table(recording.meta["sections"])
             self._names = sorted(self._streams)
             self._units = {
                 name: unit.decode()
@@ -205,7 +207,8 @@ def run_session(
                 "streams": source._names if source else None,
                 "raw_units": source._units if source else None,
                 "stream_facts": source._facts if source else None,
-                "pipeline": {"name": pipeline.name, "path": str(Path(pipeline.path).resolve())},
+                "pipeline": {"name": pipeline.name, "path": str(Path(pipeline.path).resolve()),
+                             **({"overrides": list(pipeline.overrides)} if pipeline.overrides else {})},
                 "imupipe_version": __version__,
                 "error": error,
                 "stages": {k: r.to_dict() for k, r in run.records.items()},

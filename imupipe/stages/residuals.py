@@ -1,8 +1,8 @@
 """Stage ``map_residuals``: predict every sample under the calibration and map where it fails.
 
 Inputs: the session's raw ``accel`` and ``gyro`` (and ``temperature``), the
-segmentation's ``rests`` and ``turns`` (and ``events`` when the segmentation
-writes them), and the ``calibration`` to judge (the joint refinement's, whose
+segmentation's ``rests`` and ``turns`` (and the ``events`` of ``screen_events``:
+gaps, shocks, splices), and the ``calibration`` to judge (the joint refinement's, whose
 details carry the noise model it fitted: the bias walks). Outputs the per-sample
 residual table (``sample_residuals``) and the residual map (``residual_map``: its
 cells as rows, the whole ``residual_map.json`` document in the schema metadata).
@@ -20,7 +20,7 @@ import pyarrow as pa
 from pydantic import Field
 
 from .. import schemas
-from ..components import BoundSolver, Params, Stage
+from ..components import BoundSolver, LocalGravity, Params, Stage
 from ..models import Calibration
 from ..observations import Rests, Turns
 from .refine import STANDARD_GRAVITY, temperature_stream
@@ -39,7 +39,7 @@ class MapParams(Params):
     """Spacing of the attitude-error knots inside each motion, s."""
     fdr_q: float = Field(0.05, gt=0, lt=1)
     """False-discovery rate of the flagged cells (Benjamini-Hochberg)."""
-    g_m_s2: float | None = Field(None, gt=0)
+    g_m_s2: LocalGravity | None = None
     """Local gravity, m/s^2; default: the one the calibration was fitted with."""
 
 
@@ -107,7 +107,7 @@ def _edge(x) -> float:
 
 STAGE = Stage(
     name="map_residuals",
-    version="5",
+    version="7",
     func=map_residuals,
     inputs={"accel": "accel", "gyro": "gyro", "temperature": "temperature", "rests": "rests",
             "turns": "turns", "calibration": "calibration", "events": "events"},
@@ -118,6 +118,7 @@ STAGE = Stage(
                 "by the recording's noise model; chi2/dof per sensor x axis x regime cell with "
                 "Benjamini-Hochberg flags, change points and events.",
 )
+
 
 
 def diagnose_session(inputs: Mapping[str, pa.Table], params: MapParams, solver: BoundSolver | None) -> dict:
@@ -143,7 +144,7 @@ def diagnose_session(inputs: Mapping[str, pa.Table], params: MapParams, solver: 
 
 DIAGNOSE = Stage(
     name="diagnose",
-    version="5",
+    version="7",
     func=diagnose_session,
     inputs=STAGE.inputs,
     outputs={"samples": "sample_residuals", "map": "residual_map", "diagnosis": "diagnosis"},

@@ -69,13 +69,13 @@ def test_warm_run_rewrites_no_export_and_restores_deleted_ones(
     run_sessions([session], pipeline, out, quiet=True, registry=registry)
     assert report.calls == 2
     marker = json.loads((out / "s1" / MARKER).read_text())
-    assert set(marker) == {"calibration_json", "residual_map", "diagnosis", "report"}
+    assert set(marker) == {"calibration_json", "residual_map", "diagnosis", "noise_json", "report"}
     assert marker["residual_map"]["files"] == {}  # no map table in this pipeline: nothing written
     # and back: both versions are in the cache
     pipeline.write_text(text.replace("factor = 2.0", "factor = 1.0"))
     run_sessions([session], pipeline, out, quiet=True, registry=registry)
     assert report.calls == 2
-    assert len(list((out / CACHE_DIR / "exports").glob("*/*/files.json"))) == 8  # 2 x (json, map, diagnosis, report)
+    assert len(list((out / CACHE_DIR / "exports").glob("*/*/files.json"))) == 10  # 2 x (json, map, diagnosis, noise, report)
 
 
 def test_warm_batch_sends_no_job_to_a_worker(tmp_path, toy_pipeline, session, monkeypatch):
