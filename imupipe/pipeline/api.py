@@ -474,7 +474,8 @@ def batch(
     if not export:
         for i, job in enumerate(jobs_list):
             try:
-                done = up_to_date(Path(job.session), job.session_id, pipeline_obj, registry, out)
+                done = up_to_date(Path(job.session), job.session_id, pipeline_obj, registry,
+                                  Path(job.out))
             except ImupipeError:
                 done = None  # the job says what is wrong
             if done is not None:
