@@ -33,6 +33,7 @@ from ..models import T_REF_C, TriadCalibration
 from ..observations import Rests, Turns
 from ..solvers.joint_ml import lower_gauge
 from .attitude import Attitude
+from .events import Event
 from .forward import JointModel, MotionAccel, Noise, Start
 from .linearised import Linearised, fit
 
@@ -40,22 +41,9 @@ TRANSLATION_M = 0.15  # a motion that moves the unit further than this is a carr
 POWER_GAP_S = 1.0  # a gap in the samples longer than this is a power cycle (new turn-on bias)
 EXCLUDING = ("gap", "shock", "splice", "saturation")  # events that forbid integrating across
 THERMAL_SPAN_C = 1.0  # rests spanning less cannot tell k from the bias
-ESS_BATCHES = 8  # batch means per rest that measure its samples' correlation
-
-
-@dataclass(frozen=True)
-class Event:
-    """Something the model must not be fitted across: ``kind`` (shock, gap, splice, saturation,
-    translation, change_point, ...), ``sensor``, ``window`` (t0, t1) s, ``detail`` one line."""
-
-    kind: str
-    sensor: str
-    window: tuple[float, float]
-    detail: str
-
-    def to_dict(self) -> dict:
-        return {"kind": self.kind, "sensor": self.sensor, "window": [float(self.window[0]), float(self.window[1])],
-                "detail": self.detail}
+ESS_BATCHES = 8
+SCREEN_ITER = 2  # iterations of the first fit, before the carries are found
+FIT_TOL = 1e-7  # relative cost decrease that ends the fit (a final Gauss-Newton step polishes it)  # batch means per rest that measure its samples' correlation
 
 
 @dataclass
@@ -128,18 +116,19 @@ def _overlaps(a0: np.ndarray, a1: np.ndarray, windows: list[tuple[float, float]]
     return hit
 
 
-def displacement(model: JointModel, lin: Linearised) -> np.ndarray:
+def displacement(model: JointModel, x_g: np.ndarray, x_l: np.ndarray) -> np.ndarray:
     """(m,) m: how far each motion's unexplained acceleration carries the unit (start frame,
-    integrated twice from rest), from the per-sample residuals after the nuisances' fit."""
+    integrated twice from rest), from the per-sample residuals at ``x_g``/``x_l`` (the start:
+    the attitude the gyro integrates from the rest before, good for seconds)."""
     acc = model.accel
     out = np.zeros(model.m)
     if not len(acc.t):
         return out
-    P = model.unpack(lin.x_g)
-    r = lin.r[lin.rows.of("accel_motion")].reshape(-1, 3)
+    P = model.unpack(x_g)
+    r = model.residuals(x_g, x_l)[0][model.rows.of("accel_motion")].reshape(-1, 3)
     e = np.linalg.solve(model.W_sample, r.T).T  # raw residual
     a_body = e @ np.linalg.inv(P["S_a"]).T  # m/s^2, instrument axes
-    omega, _ = model._rates(P, lin.x_l)
+    omega, _ = model._rates(P, x_l)
     R = Attitude.integrate(model.quad, omega).rotation_at(model.accel_points)
     a_start = np.einsum("kij,kj->ki", R, a_body)
     for j in np.unique(acc.motion):
@@ -190,24 +179,31 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
     T = rests.temperature
     thermal = bool(np.all(np.isfinite(T)) and len(T) and np.ptp(T) >= THERMAL_SPAN_C)
 
-    def build(sampled_turns: np.ndarray) -> tuple[JointModel, Linearised]:
+    def build(sampled_turns: np.ndarray) -> JointModel:
         acc = MotionAccel.select(t_a, y_a, rests, kept)
         acc_keep = np.isin(acc.motion, sampled_turns)
         acc = MotionAccel(acc.t[acc_keep], acc.y[acc_keep], acc.motion[acc_keep])
-        model = JointModel(rests, kept, gravity, start, noise, fit_k=thermal, accel=acc, knot_s=knot_s,
-                           power_on=power, temperature=temperature)
-        return model, fit(model, max_iter=max_iter, fixed_globals=not refit)
+        return JointModel(rests, kept, gravity, start, noise, fit_k=thermal, accel=acc, knot_s=knot_s,
+                          power_on=power, temperature=temperature)
 
     sampled = np.arange(len(keep))
-    model, lin = build(sampled)
-    moved = displacement(model, lin)
+    model = build(sampled)
+    # a first, short fit of the nuisances puts the attitude right (the gyro's calibration error,
+    # integrated over a 20 s turntable turn, would pass for metres of travel), then the carries
+    # are found and the final fit starts from it
+    first = fit(model, max_iter=SCREEN_ITER, fixed_globals=True, tol=FIT_TOL)
+    moved = displacement(model, first.x_g, first.x_l)
     carried = moved > TRANSLATION_M
     for j in np.flatnonzero(carried):
         events.append(Event("translation", "accel", (float(t0[keep[j]]), float(t1[keep[j]])),
                             f"the unit moved about {moved[j]:.2f} m during this motion (not a rotation "
                             "about a fixed point): its samples are left out, its end-points kept"))
+    x_l = first.x_l
     if carried.any():
-        model, lin = build(sampled[~carried])
+        new = build(sampled[~carried])
+        x_l = _remap(model.stages, new.stages, x_l)
+        model = new
+    lin = fit(model, max_iter=max_iter, x_l=x_l, fixed_globals=not refit, tol=FIT_TOL)
     for j in np.flatnonzero(bad):
         what = [e.kind for e in events if e.kind in EXCLUDING and e.window[0] <= t1[j] and e.window[1] >= t0[j]]
         events.append(Event("excluded_motion", "gyro", (float(t0[j]), float(t1[j])),
@@ -215,6 +211,16 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
     excluded = [e.window for e in events if e.kind in ("translation", "excluded_motion")]
     samples = sample_table(model, lin, streams, rests, Q, excluded)
     return Evaluation(lin, Q, samples, events, keep, _white_rest_chi2(model, lin, white_rests))
+
+
+def _remap(old, new, x_l: np.ndarray) -> np.ndarray:
+    """Locals of one layout as the start of another that differs only in how many knots some
+    motions have (knots are last in each stage's block: keep the common prefix)."""
+    out = np.zeros(new.size)
+    for i in range(len(new.offsets) - 1):
+        k = min(new.offsets[i + 1] - new.offsets[i], old.offsets[i + 1] - old.offsets[i])
+        out[new.offsets[i]:new.offsets[i] + k] = x_l[old.offsets[i]:old.offsets[i] + k]
+    return out
 
 
 def _white_rest_chi2(model: JointModel, lin: Linearised, white: Rests) -> dict[str, float]:

@@ -17,9 +17,25 @@ Times are seconds from the session's first sample (``t0_ns``), as the rests' clo
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from .evaluate import Event
+
+@dataclass(frozen=True)
+class Event:
+    """Something the model must not be fitted across: ``kind`` (shock, gap, splice, saturation,
+    translation, change_point, ...), ``sensor``, ``window`` (t0, t1) s, ``detail`` one line."""
+
+    kind: str
+    sensor: str
+    window: tuple[float, float]
+    detail: str
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, "sensor": self.sensor, "window": [float(self.window[0]), float(self.window[1])],
+                "detail": self.detail}
+
 
 GAP_FACTOR = 3.0  # a stamp interval this many times the nominal one is a gap
 GAP_MIN_S = 0.05

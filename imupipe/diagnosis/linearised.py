@@ -81,7 +81,7 @@ class Linearised:
 
 
 def fit(model: JointModel, max_iter: int = 30, x_g: np.ndarray | None = None,
-        x_l: np.ndarray | None = None, fixed_globals: bool = False) -> Linearised:
+        x_l: np.ndarray | None = None, fixed_globals: bool = False, tol: float = 1e-10) -> Linearised:
     """Fit ``model`` from its start (or ``x_g``/``x_l``); ``fixed_globals``: only the nuisances
     move (the model's prediction of a given calibration), the leverage still counts the globals."""
     x_g = model.x_g0.copy() if x_g is None else np.asarray(x_g, float)
@@ -92,11 +92,12 @@ def fit(model: JointModel, max_iter: int = 30, x_g: np.ndarray | None = None,
             r, Jg, Jl = model.residuals(x_g, xl)
             return r, Jg[:, :0], Jl
 
-        _, x_l, r, _, J_l, it, ok = solve_least_squares(res, np.zeros(0), x_l, offsets, max_iter=max_iter)
+        _, x_l, r, _, J_l, it, ok = solve_least_squares(res, np.zeros(0), x_l, offsets, max_iter=max_iter,
+                                                         tol=tol)
         r, J_g, J_l = model.residuals(x_g, x_l)
     else:
         x_g, x_l, r, J_g, J_l, it, ok = solve_least_squares(model.residuals, x_g, x_l, offsets,
-                                                            max_iter=max_iter)
+                                                            max_iter=max_iter, tol=tol)
     system = Bordered(J_g, J_l, offsets)
     lin = Linearised(model, x_g, x_l, r, J_g, J_l, it, ok, system)
     lin.leverage = system.leverage()

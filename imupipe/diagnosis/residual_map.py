@@ -26,7 +26,8 @@ import numpy as np
 from scipy.stats import chi2 as chi2_dist
 from scipy.stats import norm
 
-from .evaluate import Evaluation, Event
+from .evaluate import Evaluation
+from .events import Event
 from .forward import BLOCKS
 
 Q_FDR = 0.05

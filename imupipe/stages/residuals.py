@@ -44,7 +44,7 @@ class MapParams(Params):
 
 
 def _events(table: pa.Table | None) -> list[Event]:
-    from ..diagnosis.evaluate import Event
+    from ..diagnosis.events import Event
 
     if table is None:
         return []
@@ -107,7 +107,7 @@ def _edge(x) -> float:
 
 STAGE = Stage(
     name="map_residuals",
-    version="7",
+    version="10",
     func=map_residuals,
     inputs={"accel": "accel", "gyro": "gyro", "temperature": "temperature", "rests": "rests",
             "turns": "turns", "calibration": "calibration", "events": "events"},
@@ -144,7 +144,7 @@ def diagnose_session(inputs: Mapping[str, pa.Table], params: MapParams, solver: 
 
 DIAGNOSE = Stage(
     name="diagnose",
-    version="7",
+    version="10",
     func=diagnose_session,
     inputs=STAGE.inputs,
     outputs={"samples": "sample_residuals", "map": "residual_map", "diagnosis": "diagnosis"},
