@@ -6,7 +6,6 @@ claims its schema, has strictly increasing time and finite values.
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +15,7 @@ from . import schemas
 from .components import Recording
 from .errors import ReaderError, SchemaError
 from .io import write_arrow
+from .paths import check_out_dir, safe_name, under, unique_names
 from .plugins import Registry
 
 STREAMS = ("accel", "gyro", "mag", "temperature")
@@ -90,19 +90,20 @@ def check_stream(table: pa.Table, stream: str, where: str) -> None:
 
 
 def write_recording(recording: Recording, out_dir: Path) -> list[Path]:
-    """Write every canonical table as Arrow IPC: ``out_dir/<device>/<stream>.arrow``."""
+    """Write every canonical table as Arrow IPC: ``out_dir/<device>/<stream>.arrow``.
+
+    A device name is made a safe folder name, unique among the recording's
+    devices (``paths.unique_names``), and every path is checked to lie in ``out_dir``.
+    """
+    out_dir = check_out_dir(Path(out_dir))
+    folders = unique_names(recording.devices)
     written = []
     for device, streams in recording.devices.items():
         for stream, table in streams.items():
-            path = Path(out_dir) / safe_name(device) / f"{stream}.arrow"
+            path = under(out_dir, folders[device], f"{safe_name(stream, 'stream')}.arrow")
             write_arrow(path, table)
             written.append(path)
     return written
-
-
-def safe_name(name: str) -> str:
-    """A device or topic name as a file-system name (``/imu0/data`` -> ``imu0_data``)."""
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "imu"
 
 
 FACT_KEYS = ("imupipe.topic", "imupipe.device_id", "imupipe.frame_convention")
