@@ -28,7 +28,14 @@ from ..errors import ImupipeError, MissingExtraError
 from ..plugins import Registry, make_registry
 from ..paths import check_out_dir, safe_name, under
 from ..progress import progress
-from .cache import Cache, claimant, read_manifest, reader_identity, session_digest
+from .cache import (
+    Cache,
+    claimant,
+    read_manifest,
+    reader_identity,
+    session_digest,
+    write_manifest,
+)
 from .config import default_pipeline_path, load_pipeline
 from .dag import Pipeline, Ref
 from .export import EXPORT_DIR, ExportError, export_formats, noise_tables, parse_formats
@@ -131,14 +138,23 @@ def process_session(
     except ExportError:  # the calibration stands; only a requested format could not be written
         _commit(staging, run_dir)
         raise
-    except BaseException:
+    except BaseException as exc:
         _remove(staging)
+        _record_error(run_dir / MANIFEST, f"{type(exc).__name__}: {exc}")
         raise
     _commit(staging, run_dir)
     return None if written is None else run_dir / Path(written).relative_to(staging)
 
 
 PART = ".part"
+
+
+def _record_error(manifest_path: Path, error: str) -> None:
+    """Say in run.json that the run failed after its stages (while exporting)."""
+    manifest = read_manifest(manifest_path)
+    if manifest is not None and not manifest.get("error"):
+        manifest.pop("format", None)
+        write_manifest(manifest_path, {**manifest, "error": error})
 
 
 def _staging_dir(run_dir: Path) -> Path:
