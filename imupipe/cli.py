@@ -86,7 +86,7 @@ class _LineFormatter(logging.Formatter):
     """``imupipe: warning: <message>``: one line per record, like the error lines."""
 
     def format(self, record: logging.LogRecord) -> str:
-        return f"imupipe: {record.levelname.lower()}: {record.getMessage()}"
+        return f"imupipe: {record.levelname.lower()}: {one_line(record.getMessage(), 4 * MAX_LINE)}"
 
 
 def _parse_assignments(option: str, items: list[str], example: str) -> dict[str, object]:
@@ -187,19 +187,57 @@ COMMANDS = {"ingest": _cmd_ingest, "run": _cmd_run, "batch": _cmd_batch, "status
             "simulate": _cmd_simulate, "plugins": _cmd_plugins, "export": _cmd_export}
 
 
+MAX_LINE = 600  # characters of an error line; echoed values beyond are cut
+
+
+def one_line(text: str, limit: int = MAX_LINE) -> str:
+    """``text`` on one line, at most ``limit`` characters (an echoed value may be megabytes)."""
+    text = " ".join(str(text).split())
+    if len(text) > limit:
+        cut = len(text) - limit
+        text = f"{text[:limit]}... ({cut} more characters)"
+    return text
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Python warnings outside the stages as one ``imupipe: warning:`` line each."""
+    log.warning("%s", one_line(str(message)))
+
+
 def main(argv: list[str] | None = None) -> int:
+    import os
+    import warnings
+
     args = _parser().parse_args(argv)
     handler = logging.StreamHandler()
     handler.setFormatter(_LineFormatter())
     logging.basicConfig(level=logging.WARNING, handlers=[handler])
-    try:
-        return COMMANDS[args.command](args)
-    except ImupipeError as exc:
-        print(f"imupipe {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("imupipe: interrupted", file=sys.stderr)
-        return 130
+    with warnings.catch_warnings():
+        warnings.showwarning = _show_warning
+        # numpy's floating-point complaints (divide by zero, ...) are symptoms, never the news:
+        # the error line or the result's own checks say what is wrong
+        warnings.filterwarnings("ignore", category=RuntimeWarning,
+                                message=r"(invalid value|divide by zero|overflow|underflow) "
+                                        r"encountered|Mean of empty slice|Degrees of freedom")
+        try:
+            return COMMANDS[args.command](args)
+        except ImupipeError as exc:
+            print(f"imupipe {args.command}: error: {one_line(exc)}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print("imupipe: interrupted", file=sys.stderr)
+            return 130
+        except RecursionError:
+            print(f"imupipe {args.command}: error: input nested too deeply to read (a "
+                  "self-referencing or absurdly deep file); simplify it", file=sys.stderr)
+            return 2
+        except Exception as exc:  # noqa: BLE001 - an internal failure: one line, exit 1
+            if os.environ.get("IMUPIPE_TRACEBACK"):
+                raise
+            print(f"imupipe {args.command}: internal error: {one_line(f'{type(exc).__name__}: {exc}')}"
+                  " (a bug in imupipe or a plugin; rerun with IMUPIPE_TRACEBACK=1 for the "
+                  "traceback and report it)", file=sys.stderr)
+            return 1
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@ from __future__ import annotations
 import glob
 import hashlib
 import logging
+import os
 import shutil
 import traceback
 import warnings
@@ -102,16 +103,24 @@ def session_ids(sessions: Sequence[Path]) -> list[str]:
     """
 
     def stem(p: Path) -> str:
-        return p.parent.resolve().name if p.name.lower() in FOLDER_SESSIONS else p.stem
+        return _resolved(p.parent).name if p.name.lower() in FOLDER_SESSIONS else p.stem
 
     stems = [safe_name(stem(Path(s)), "session") for s in sessions]
     folded = [s.lower() for s in stems]
     out = []
     for s, path in zip(stems, sessions, strict=True):
         if folded.count(s.lower()) > 1:
-            s = f"{s}-{hashlib.sha256(str(Path(path).resolve()).encode()).hexdigest()[:8]}"
+            s = f"{s}-{hashlib.sha256(str(_resolved(path)).encode()).hexdigest()[:8]}"
         out.append(s)
     return out
+
+
+def _resolved(path: Path | str) -> Path:
+    """``path`` resolved; as an absolute path when it cannot be (a loop of links: said later)."""
+    try:
+        return Path(path).resolve()
+    except (OSError, RuntimeError):
+        return Path(os.path.abspath(path))
 
 
 def process_session(
@@ -319,7 +328,7 @@ def run_sessions(
     export = parse_formats(export, registry)
     check_out_dir(out)
     # the same file named twice is one session
-    sessions = list({Path(s).resolve(): Path(s) for s in sessions}.values())
+    sessions = list({_resolved(s): Path(s) for s in sessions}.values())
     written, failures = [], []
     with progress(quiet) as p:
         all_task = p.add_task("sessions", total=len(sessions))
@@ -391,7 +400,7 @@ def expand_inputs(inputs: Sequence[str], registry: Registry, out: Path | None = 
             raise ImupipeError(f"{item}: no such file, directory or matching glob")
         for m in matches:
             found += _walk(m, readers, skip) if m.is_dir() else [m]
-    unique = list(dict.fromkeys(p.resolve() for p in found))
+    unique = list(dict.fromkeys(_resolved(p) for p in found))
     if not unique:
         suffixes = sorted({s for r in readers for s in getattr(r, "suffixes", ())})
         raise ImupipeError(
@@ -417,6 +426,9 @@ def _walk(folder: Path, readers: list, skip: Path | None) -> list[Path]:
             continue
         candidates = [r for r in readers if p.suffix.lower() in getattr(r, "suffixes", ())]
         if not candidates:
+            continue
+        if not p.is_file():  # a FIFO, a device, a dangling link or a loop of links
+            log.warning("%s: skipped: not a regular file", p)
             continue
         with open(p, "rb") as f:
             head = f.read(64)

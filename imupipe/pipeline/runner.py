@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import re
 import time
 import warnings
 from collections.abc import Callable
@@ -23,11 +24,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 
+import numpy as np
 import pyarrow as pa
 
 from .. import __version__, schemas
-from ..errors import ImupipeError, SchemaError
-from ..ingest import read_recording, stream_facts
+from ..errors import ImupipeError, SchemaError, SolverError
+from ..ingest import check_rate, check_session_path, read_recording, stream_facts
 from ..plugins import Registry
 from .cache import (
     Cache,
@@ -135,6 +137,8 @@ class _Source:
         if self._streams is None:
             recording = read_recording(self.path, self.registry, self.pipeline.reader)
             self._streams = dict(recording.device(self.pipeline.device))
+            for name, table in self._streams.items():
+                check_rate(table, name, f"{self.path} [{name}]")
             self._names = sorted(self._streams)
             self._units = {
                 name: unit.decode()
@@ -172,9 +176,7 @@ def run_session(
     on_stage: Callable[[str, StageRecord], None] | None = None,
 ) -> SessionRun:
     """Run ``pipeline`` on ``session``; write the run manifest (also when a stage fails)."""
-    session = Path(session)
-    if not session.exists():
-        raise ImupipeError(f"{session}: no such file")
+    session = check_session_path(Path(session))
     if session.is_dir():
         raise ImupipeError(
             f"{session}: is a directory; give a recording file or a session.toml "
@@ -244,18 +246,37 @@ def _run_node(node: Node, run: SessionRun, source: _Source, registry: Registry) 
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
+        failed = True
         try:
             outputs = node.stage.func(MappingProxyType(inputs), node.params, node.solver)
+            failed = False
         except ImupipeError as exc:
             raise _prefixed(exc, where) from exc
+        except NUMERICAL_ERRORS as exc:  # the data cannot determine what the stage solves for
+            raise SolverError(
+                f"{where}: the data cannot determine this stage's result ({type(exc).__name__}: "
+                f"{exc}); check for dead, saturated or constant axes and the units of the data"
+            ) from exc
         finally:
-            said = list(dict.fromkeys(str(w.message) for w in caught))
+            # a failed stage's floating-point warnings (divide by zero, ...) are symptoms of
+            # the error that follows, not news: only its own warnings are said
+            said = list(dict.fromkeys(str(w.message) for w in caught
+                                      if not (failed and _is_numpy_fp_warning(w))))
             _log_warnings(node.key, said)
     seconds = time.perf_counter() - t0
     _check_outputs(node, outputs, where)
     stored = run.cache.store(parts, {p: outputs[p] for p in node.stage.outputs}, node.key, said)
     registry.pm.hook.imupipe_after_stage(stage=node.key, key=key, cached=False, seconds=seconds)
     return StageRecord("ran", key, parts.to_dict(), stored, seconds=seconds, warnings=said)
+
+
+NUMERICAL_ERRORS = (np.linalg.LinAlgError, FloatingPointError, OverflowError, ZeroDivisionError)
+_NUMPY_FP = re.compile(r"(invalid value|divide by zero|overflow|underflow) encountered|"
+                       r"Mean of empty slice|Degrees of freedom <= 0|All-NaN")
+
+
+def _is_numpy_fp_warning(w: warnings.WarningMessage) -> bool:
+    return issubclass(w.category, RuntimeWarning) and bool(_NUMPY_FP.search(str(w.message)))
 
 
 def _log_warnings(stage: str, messages: list[str]) -> None:
