@@ -7,6 +7,7 @@ what is wrong), 1 internal failure.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import sys
@@ -133,6 +134,9 @@ def _cmd_plugins(args) -> int:
     for (plugin, dist, ver), provides in sorted(rows.items()):
         print(f"{plugin}  ({dist or '-'} {ver or ''})".rstrip())
         print(f"    {', '.join(provides)}")
+    for plugin, (dist, ver, why) in sorted(registry.broken.items()):
+        print(f"{plugin}  ({dist or '-'} {ver or ''})  BROKEN".replace(" )", ")"))
+        print(f"    {one_line(why)}")
     return 0
 
 
@@ -227,6 +231,10 @@ def main(argv: list[str] | None = None) -> int:
         except KeyboardInterrupt:
             print("imupipe: interrupted", file=sys.stderr)
             return 130
+        except BrokenPipeError:  # the reader of our output went away (``| head``)
+            with contextlib.suppress(OSError):
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return 0
         except RecursionError:
             print(f"imupipe {args.command}: error: input nested too deeply to read (a "
                   "self-referencing or absurdly deep file); simplify it", file=sys.stderr)
