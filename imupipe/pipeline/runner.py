@@ -246,10 +246,8 @@ def _run_node(node: Node, run: SessionRun, source: _Source, registry: Registry) 
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        failed = True
         try:
             outputs = node.stage.func(MappingProxyType(inputs), node.params, node.solver)
-            failed = False
         except ImupipeError as exc:
             raise _prefixed(exc, where) from exc
         except NUMERICAL_ERRORS as exc:  # the data cannot determine what the stage solves for
@@ -258,10 +256,13 @@ def _run_node(node: Node, run: SessionRun, source: _Source, registry: Registry) 
                 f"{exc}); check for dead, saturated or constant axes and the units of the data"
             ) from exc
         finally:
-            # a failed stage's floating-point warnings (divide by zero, ...) are symptoms of
-            # the error that follows, not news: only its own warnings are said
+            # numpy's floating-point warnings (divide by zero, ...) are symptoms, not news: the
+            # stage's own checks or the error that follows say what is wrong; kept at debug level
+            for w in caught:
+                if _is_numpy_fp_warning(w):
+                    log.debug("%s: %s", node.key, w.message)
             said = list(dict.fromkeys(str(w.message) for w in caught
-                                      if not (failed and _is_numpy_fp_warning(w))))
+                                      if not _is_numpy_fp_warning(w)))
             _log_warnings(node.key, said)
     seconds = time.perf_counter() - t0
     _check_outputs(node, outputs, where)

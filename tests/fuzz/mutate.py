@@ -362,6 +362,11 @@ def empty(rng, folder, suffix, data):
     return Case("empty", "bad", _write(folder, f"s{suffix}", b""))
 
 
+# mutations that work on any format's bytes (the others need a canonical CSV base)
+ANY_FORMAT = ("truncate", "bit_flips", "zeroed_region", "hostile_name", "symlink_loop", "fifo",
+              "empty", "deep_pipeline", "deep_manifest", "self_reference")
+
+
 def make_case(kind: str, rng: np.random.Generator, sandbox: Path, base: Path) -> Case:
     """Lay out case ``kind`` of ``base`` (a session file) in ``sandbox``; return it."""
     folder = sandbox / "in"
