@@ -1,6 +1,6 @@
 """The fault campaign of issue 12: mutated sessions through ``imupipe run``/``ingest``.
 
-    python bench/fuzz.py [--cases 400] [--seed 0] [--base FILE ...] [--timeout 180]
+    python bench/fuzz.py [--cases 400] [--seed 0] [--base FILE ...] [--timeout 180] [--kills 15]
 
 Each case is a mutation from ``tests/fuzz/mutate.py`` of a base session (by
 default two small simulated sessions, CSV and MCAP, made once) laid out in its
@@ -17,6 +17,10 @@ end, one row per mutation and a total; target 0 in every column but ``cases``:
     outside_out      a file outside --out created, changed or deleted
     half_written     a .part left, an unreadable .json/.arrow, or a calibration.json after a failure
 
+With ``--kills N``, ``imupipe batch`` is then killed (SIGKILL) N times at random points
+on one output folder: every complete cache entry must verify after each kill, and the
+final rerun must equal a clean run byte for byte with no ``.part`` left.
+
 Most cases use the default pipeline without its reports (faster); every 10th
 uses the full default pipeline, reports included.
 """
@@ -25,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import io
 import os
 import shutil
@@ -163,6 +168,51 @@ def judge(case, code, err, before, after, out: Path) -> dict[str, int]:
     return row
 
 
+def kill_campaign(base: Path, light: Path, work: Path, kills: int, rng) -> dict[str, int]:
+    """SIGKILL ``imupipe batch`` at random points; after each kill every complete cache entry
+    must verify; the final rerun must equal a clean run byte for byte and leave no .part."""
+    import json
+    import subprocess
+
+    from imupipe.pipeline.cache import Cache
+
+    def batch(out: Path) -> subprocess.Popen:
+        return subprocess.Popen(
+            [sys.executable, "-m", "imupipe.cli", "batch", str(base), "--out", str(out),
+             "--pipeline", str(light), "--jobs", "1", "--quiet"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+
+    ref_out = work / "kill-ref"
+    t0 = time.monotonic()
+    batch(ref_out).wait()
+    clean_s = time.monotonic() - t0
+    ref = (ref_out / base.stem / "calibration.json").read_bytes()
+    out = work / "kill-out"
+    row = {"kills": 0, "unverified_entries": 0, "half_written": 0, "rerun_differs": 0}
+    for _ in range(kills):
+        proc = batch(out)
+        time.sleep(float(rng.uniform(0.5, clean_s)))
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        row["kills"] += 1
+        cache = Cache(out / ".cache")
+        for index in (out / ".cache").glob("*/*/outputs.json"):
+            if cache.entry(index.parent.name) is None:
+                row["unverified_entries"] += 1
+        for p in out.rglob("*.json"):
+            try:
+                json.loads(p.read_text())
+            except ValueError:
+                row["half_written"] += 1
+    batch(out).wait()
+    if (out / base.stem / "calibration.json").read_bytes() != ref:
+        row["rerun_differs"] = 1
+    row["half_written"] += len([p for p in out.rglob("*") if p.name.endswith(".part")
+                                or p.name.startswith(".part-")])
+    return row
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", type=int, default=400)
@@ -171,6 +221,8 @@ def main() -> int:
     ap.add_argument("--timeout", type=float, default=180.0)
     ap.add_argument("--work", type=Path, default=None, help="keep sandboxes here (default: temp)")
     ap.add_argument("--kinds", default="", help="comma-separated mutations (default: all)")
+    ap.add_argument("--kills", type=int, default=0,
+                    help="also SIGKILL `imupipe batch` this many times at random points")
     args = ap.parse_args()
 
     work = args.work or Path(tempfile.mkdtemp(prefix="imupipe-fuzz-"))
@@ -217,6 +269,10 @@ def main() -> int:
         cols = ",".join(c for c in COLUMNS[1:] if row[c])
         print(f"  case {i} {case.name} ({case.expect}, {case.command} {case.session}) exit {code} "
               f"[{cols}] {case.notes}: {' | '.join(t[:300] for t in tail)}")
+    if args.kills:
+        csv = [b for b in bases if b.suffix.lower() == ".csv"] or bases
+        row = kill_campaign(csv[0], light, work, args.kills, rng)
+        print("\nSIGKILL of batch: " + ", ".join(f"{k} {v}" for k, v in row.items()))
     if args.work is None:
         shutil.rmtree(work, ignore_errors=True)
     return 0

@@ -118,7 +118,9 @@ def _cmd_ingest(args) -> int:
 
     registry = make_registry()
     recording = read_recording(args.session, registry)
-    out = args.out or Path(f"{args.session.stem}.tables")
+    from .paths import safe_name
+
+    out = args.out or Path(f"{safe_name(args.session.stem, 'session')}.tables")
     for path in write_recording(recording, out):
         print(path)
     return 0
