@@ -210,6 +210,13 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     log.warning("%s", one_line(str(message)))
 
 
+def _is_write_refused(exc: BaseException) -> bool:
+    import errno
+
+    return isinstance(exc, OSError) and exc.errno in (
+        errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.ENAMETOOLONG)
+
+
 def main(argv: list[str] | None = None) -> int:
     import os
     import warnings
@@ -242,6 +249,11 @@ def main(argv: list[str] | None = None) -> int:
                   "self-referencing or absurdly deep file); simplify it", file=sys.stderr)
             return 2
         except Exception as exc:  # noqa: BLE001 - an internal failure: one line, exit 1
+            if _is_write_refused(exc):  # a full disk, a read-only or forbidden folder: the user's
+                where = f"{exc.filename}: " if exc.filename else ""
+                print(f"imupipe {args.command}: error: {one_line(where + (exc.strerror or str(exc)))}"
+                      "; free space or give a folder you can write with --out", file=sys.stderr)
+                return 2
             if os.environ.get("IMUPIPE_TRACEBACK"):
                 raise
             print(f"imupipe {args.command}: internal error: {one_line(f'{type(exc).__name__}: {exc}')}"

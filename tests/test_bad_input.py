@@ -164,3 +164,17 @@ def test_unwritable_out(tmp_path, capsys):
     ro.mkdir(mode=0o500)
     path = write_csv(tmp_path / "s.csv")
     assert_one_line(*run(capsys, "ingest", path, "--out", ro / "o"), "--out")
+
+
+def test_full_disk_is_one_line(tmp_path, capsys, monkeypatch):
+    import errno
+
+    import imupipe.ingest
+
+    def full(path, table):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(imupipe.ingest, "write_arrow", full)
+    path = write_csv(tmp_path / "s.csv")
+    assert_one_line(*run(capsys, "ingest", path, "--out", tmp_path / "o"), "No space left",
+                    "accel.arrow")
