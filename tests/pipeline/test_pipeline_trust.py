@@ -132,3 +132,20 @@ def test_out_that_is_a_file_is_one_line(tmp_path, toy_registry, toy_pipeline, se
                      "--quiet"])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "--out" in err and "Traceback" not in err
+
+
+def test_batch_skips_fifos_and_link_loops_in_a_folder(tmp_path, toy_pipeline, caplog):
+    from pipeline_toys import TOY_SPEC
+
+    from imupipe.pipeline.api import batch
+
+    data = tmp_path / "data"
+    data.mkdir()
+    write_session(data / "good.arrowsession", seed=1)
+    os.mkfifo(data / "pipe.arrowsession")
+    (data / "loop.arrowsession").symlink_to(data / "loop.arrowsession")
+    failures = batch([str(data)], toy_pipeline, tmp_path / "out", "local", 1, quiet=True,
+                     plugins=TOY_SPEC)
+    assert failures == []
+    assert (tmp_path / "out" / "good" / "calibration.json").is_file()
+    assert "pipe.arrowsession: skipped: not a regular file" in caplog.text
