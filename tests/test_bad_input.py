@@ -178,3 +178,14 @@ def test_full_disk_is_one_line(tmp_path, capsys, monkeypatch):
     path = write_csv(tmp_path / "s.csv")
     assert_one_line(*run(capsys, "ingest", path, "--out", tmp_path / "o"), "No space left",
                     "accel.arrow")
+
+
+def test_missing_imu_stream_is_named(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    t = 1_000_000_000 + np.arange(600) * 10_000_000
+    mag = 2e-5 + 1e-7 * rng.standard_normal((600, 3))
+    rows = [f"{ti},{m[0]!r},{m[1]!r},{m[2]!r},25.0" for ti, m in zip(t, mag)]
+    path = tmp_path / "magonly.csv"
+    path.write_text("t_ns,mag_x,mag_y,mag_z,temperature\n" + "\n".join(rows) + "\n")
+    assert_one_line(*run(capsys, "run", path, "--out", tmp_path / "o"),
+                    "no accel or gyro stream", "sensor_msgs/Imu")

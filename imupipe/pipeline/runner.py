@@ -249,7 +249,7 @@ def _run_node(node: Node, run: SessionRun, source: _Source, registry: Registry) 
         try:
             outputs = node.stage.func(MappingProxyType(inputs), node.params, node.solver)
         except ImupipeError as exc:
-            raise _prefixed(exc, where) from exc
+            raise _prefixed(exc, where + _missing_imu(run.pipeline, source)) from exc
         except NUMERICAL_ERRORS as exc:  # the data cannot determine what the stage solves for
             raise SolverError(
                 f"{where}: the data cannot determine this stage's result ({type(exc).__name__}: "
@@ -312,6 +312,18 @@ def _check_outputs(node: Node, outputs: object, where: str) -> None:
         )
     for port, schema_id in node.stage.outputs.items():
         schemas.check(outputs[port], schema_id, f"{where} output {port!r}")
+
+
+def _missing_imu(pipeline: Pipeline, source: _Source) -> str:
+    """`` (the session has no accel/gyro stream ...)`` when the pipeline reads one that is
+    missing: the likely cause of a stage's failure (an MCAP without its Imu topic)."""
+    used = {ref.port for node in pipeline.nodes.values() for ref in node.inputs.values()
+            if ref.is_session}
+    missing = [s for s in ("accel", "gyro") if s in used and s not in source.names()]
+    if not missing:
+        return ""
+    return (f" (the session has no {' or '.join(missing)} stream: for ROS/MCAP, no "
+            f"sensor_msgs/Imu topic; it has {', '.join(source.names()) or 'none'})")
 
 
 def _prefixed(exc: ImupipeError, where: str) -> ImupipeError:
