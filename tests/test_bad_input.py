@@ -184,7 +184,7 @@ def test_missing_imu_stream_is_named(tmp_path, capsys):
     rng = np.random.default_rng(0)
     t = 1_000_000_000 + np.arange(600) * 10_000_000
     mag = 2e-5 + 1e-7 * rng.standard_normal((600, 3))
-    rows = [f"{ti},{m[0]!r},{m[1]!r},{m[2]!r},25.0" for ti, m in zip(t, mag)]
+    rows = [f"{ti},{float(m[0])!r},{float(m[1])!r},{float(m[2])!r},25.0" for ti, m in zip(t, mag)]
     path = tmp_path / "magonly.csv"
     path.write_text("t_ns,mag_x,mag_y,mag_z,temperature\n" + "\n".join(rows) + "\n")
     assert_one_line(*run(capsys, "run", path, "--out", tmp_path / "o"),
