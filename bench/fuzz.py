@@ -43,8 +43,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "fuzz"))
 
-import numpy as np  # noqa: E402
-from mutate import ANY_FORMAT, MUTATIONS, half_written, make_case, snapshot  # noqa: E402
+import numpy as np
+from mutate import ANY_FORMAT, MUTATIONS, half_written, make_case, snapshot
 
 COLUMNS = ("cases", "tracebacks", "bad_exit", "multi_line", "outside_out", "half_written")
 
@@ -84,7 +84,7 @@ def light_pipeline(folder: Path) -> Path:
 def preload() -> None:
     """Import what every case needs once, in the parent (no library thread pool is started:
     the children are forked from it)."""
-    import imupipe.cli  # noqa: F401
+    import imupipe.cli
     import imupipe.pipeline.api  # noqa: F401
     from imupipe.plugins import make_registry
 

@@ -248,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"imupipe {args.command}: error: input nested too deeply to read (a "
                   "self-referencing or absurdly deep file); simplify it", file=sys.stderr)
             return 2
-        except Exception as exc:  # noqa: BLE001 - an internal failure: one line, exit 1
+        except Exception as exc:
             if _is_write_refused(exc):  # a full disk, a read-only or forbidden folder: the user's
                 where = f"{exc.filename}: " if exc.filename else ""
                 print(f"imupipe {args.command}: error: {one_line(where + (exc.strerror or str(exc)))}"

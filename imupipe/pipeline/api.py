@@ -26,8 +26,8 @@ from pathlib import Path
 
 from .. import __version__
 from ..errors import ImupipeError, MissingExtraError
-from ..plugins import Registry, make_registry
 from ..paths import check_out_dir, safe_name, under
+from ..plugins import Registry, make_registry
 from ..progress import progress
 from .cache import (
     Cache,

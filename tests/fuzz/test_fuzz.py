@@ -13,9 +13,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from mutate import MUTATIONS, half_written, make_case, snapshot, tiny_csv  # noqa: E402
+from mutate import MUTATIONS, half_written, make_case, snapshot, tiny_csv
 
-from imupipe import cli  # noqa: E402
+from imupipe import cli
 
 
 def _base(folder: Path) -> Path:

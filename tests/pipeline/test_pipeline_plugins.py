@@ -150,6 +150,6 @@ def test_plugin_raising_in_its_hook_is_left_out(caplog):
     registry = make_registry([_RaisingHook(), pipeline_toys], entry_points_too=False)
     assert "arrowsession" in registry.names("readers")
     assert "half_registered" not in registry.names("readers")
-    ((name, (_, _, why)),) = registry.broken.items()
+    ((_, (_, _, why)),) = registry.broken.items()
     assert "imupipe_register_readers raised RuntimeError: vendor SDK missing" in why
     assert "is broken and left out" in caplog.text
