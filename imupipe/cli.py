@@ -1,7 +1,7 @@
 """Command line (``spec/contracts.md``): thin; parses, delegates, shows progress.
 
 Exit status: 0 success, 2 bad usage or bad input (one line naming the file and
-what is wrong), 1 internal failure.
+what is wrong), 1 internal failure, 3 with ``--strict`` when a verdict is warn or fail.
 """
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ import argparse
 import contextlib
 import json
 import logging
+import re
 import sys
 from pathlib import Path
 
@@ -27,10 +28,26 @@ def _parser() -> argparse.ArgumentParser:
     def common(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--quiet", action="store_true", help="no progress display")
 
+    def strict(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--strict", action="store_true",
+                        help="exit status 3 when a calibration's verdict is warn or fail")
+
     def exports(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--export", action="append", default=[], metavar="FORMAT[,...]",
                         help="also write the calibration for other software, in DIR/<session>/"
                              "export/: kalibr, imu_tk, px4, ardupilot, imu_calib")
+
+    def pipeline_options(sp: argparse.ArgumentParser) -> None:
+        """--pipeline, --set, --device: run, batch, status (and diagnose) take the same ones."""
+        sp.add_argument("--pipeline", type=Path, default=None, metavar="FILE_OR_NAME",
+                        help="pipeline TOML, or the name of a shipped one (imupipe pipelines); "
+                             "default: the built-in one")
+        sp.add_argument("--set", action="append", default=[], dest="overrides",
+                        metavar="STAGE.PARAM=VALUE",
+                        help="override a pipeline parameter, e.g. --set accel.g_m_s2=9.81 "
+                             "(validated like the pipeline file)")
+        sp.add_argument("--device", default=None, metavar="NAME",
+                        help="which IMU of a multi-IMU recording (the pipeline's [input] device)")
 
     sp = sub.add_parser("ingest", help="read a session into canonical Arrow tables")
     sp.add_argument("session", type=Path)
@@ -39,23 +56,33 @@ def _parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("run", help="calibrate one or more sessions")
     sp.add_argument("sessions", type=Path, nargs="+", metavar="SESSION")
-    sp.add_argument("--pipeline", type=Path, default=None, help="pipeline TOML (default: the built-in one)")
+    pipeline_options(sp)
     sp.add_argument("--out", type=Path, default=Path("imupipe-out"))
     exports(sp)
+    strict(sp)
+    common(sp)
+
+    sp = sub.add_parser("diagnose", help="say which physics the calibrated model leaves out, fit it, "
+                                         "check it on held-out data")
+    sp.add_argument("session", type=Path, metavar="SESSION")
+    pipeline_options(sp)  # a pipeline with a map_residuals stage (default: the built-in one)
+    sp.add_argument("--out", type=Path, default=Path("imupipe-out"))
+    strict(sp)
     common(sp)
 
     sp = sub.add_parser("batch", help="calibrate every session under directories or globs")
     sp.add_argument("inputs", nargs="+", metavar="GLOB_OR_DIR")
-    sp.add_argument("--pipeline", type=Path, default=None)
+    pipeline_options(sp)
     sp.add_argument("--out", type=Path, default=Path("imupipe-out"))
     sp.add_argument("--executor", default="local", help="local (process pool) or dask (extra imupipe[dask])")
     sp.add_argument("--jobs", type=int, default=None, help="parallel jobs (default: number of cores)")
     exports(sp)
+    strict(sp)
     common(sp)
 
     sp = sub.add_parser("status", help="say which stages of a pipeline are stale and why")
     sp.add_argument("sessions", type=Path, nargs="*", metavar="SESSION")
-    sp.add_argument("--pipeline", type=Path, default=None)
+    pipeline_options(sp)
     sp.add_argument("--out", type=Path, default=Path("imupipe-out"))
     common(sp)
 
@@ -80,6 +107,7 @@ def _parser() -> argparse.ArgumentParser:
     common(sp)
 
     common(sub.add_parser("plugins", help="list every plugin and what it provides"))
+    common(sub.add_parser("pipelines", help="list the shipped pipelines, one line each"))
     return p
 
 
@@ -142,27 +170,89 @@ def _cmd_plugins(args) -> int:
     return 0
 
 
+def _overrides(args) -> list[str]:
+    """``--set`` items, and ``--device NAME`` as the override ``input.device``."""
+    sets = list(getattr(args, "overrides", []) or [])
+    if getattr(args, "device", None):
+        sets.append(f"input.device={json.dumps(args.device)}")
+    return sets
+
+
+def _cmd_pipelines(args) -> int:
+    import tomllib
+
+    from .pipeline.config import shipped_pipelines
+
+    rows = []
+    for name, path in shipped_pipelines().items():
+        try:
+            text = str(tomllib.loads(path.read_text()).get("description", "")).strip()
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError):
+            text = "(not valid TOML)"
+        first = " ".join(re.split(r"(?<=[a-z0-9)])\.\s+(?=[A-Z])", text)[0].split()).rstrip(".")
+        if len(first) > 100:  # one line: the first sentence up to its colon, else cut at a word
+            head = first.split(": ")[0]
+            first = head if len(head) <= 100 else first[:100].rsplit(" ", 1)[0].rstrip(",;:(") + " ..."
+        rows.append((name, first or "(no description)"))
+    width = max((len(n) for n, _ in rows), default=0)
+    for name, line in rows:
+        print(f"{name:<{width}}  {line}")
+    return 0
+
+
 def _cmd_run(args) -> int:
     from .pipeline.api import run_sessions
+    from .verdict import read_verdict, strict_failure, verdict_lines
 
+    verdicts = []
     for path in run_sessions(args.sessions, pipeline=args.pipeline, out=args.out, quiet=args.quiet,
-                             export=args.export):
+                             export=args.export, overrides=_overrides(args)):
+        verdicts.append(read_verdict(path))
         print(path)
-    return 0
+        print("\n".join(verdict_lines(verdicts[-1])))
+    return 3 if args.strict and strict_failure(verdicts) else 0
+
+
+def _cmd_diagnose(args) -> int:
+    import json
+
+    from .pipeline.api import run_sessions
+
+    written = run_sessions([args.session], pipeline=args.pipeline, out=args.out, quiet=args.quiet,
+                           diagnose=True, overrides=_overrides(args))
+    folder = written[0].parent if written else None
+    path = folder / "diagnosis.json" if folder else None
+    if path is None or not path.exists():
+        print(f"imupipe diagnose: error: {args.session}: no diagnosis was written", file=sys.stderr)
+        return 1
+    doc = json.loads(path.read_text())
+    for f in doc["findings"]:
+        print(f"{f['effect']} ({f['sensor']}, {f['regime']}): {f['explanation']}")
+    if not doc["findings"]:
+        print("no finding: the calibrated model explains the recording")
+    print(path)
+    from .verdict import read_verdict, strict_failure, verdict_lines
+
+    verdict = read_verdict(written[0])
+    print("\n".join(verdict_lines(verdict)))
+    return 3 if args.strict and strict_failure([verdict]) else 0
 
 
 def _cmd_batch(args) -> int:
     from .pipeline.api import batch
 
     failures = batch(args.inputs, pipeline=args.pipeline, out=args.out, executor=args.executor,
-                     jobs=args.jobs, quiet=args.quiet, export=args.export)
-    return 2 if failures else 0
+                     jobs=args.jobs, quiet=args.quiet, export=args.export, overrides=_overrides(args),
+                     strict=args.strict)
+    if any(r.status != "ok" for r in failures):
+        return 2
+    return 3 if failures else 0
 
 
 def _cmd_status(args) -> int:
     from .pipeline.api import status
 
-    print(status(args.sessions, pipeline=args.pipeline, out=args.out))
+    print(status(args.sessions, pipeline=args.pipeline, out=args.out, overrides=_overrides(args)))
     return 0
 
 
@@ -190,7 +280,8 @@ def _cmd_simulate(args) -> int:
 
 
 COMMANDS = {"ingest": _cmd_ingest, "run": _cmd_run, "batch": _cmd_batch, "status": _cmd_status,
-            "simulate": _cmd_simulate, "plugins": _cmd_plugins, "export": _cmd_export}
+            "simulate": _cmd_simulate, "plugins": _cmd_plugins, "export": _cmd_export,
+            "pipelines": _cmd_pipelines, "diagnose": _cmd_diagnose}
 
 
 MAX_LINE = 600  # characters of an error line; echoed values beyond are cut

@@ -9,10 +9,10 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar, Protocol, runtime_checkable
+from typing import Annotated, Any, ClassVar, Protocol, runtime_checkable
 
 import pyarrow as pa
-from pydantic import BaseModel, ConfigDict
+from pydantic import AfterValidator, BaseModel, ConfigDict
 
 
 class Params(BaseModel):
@@ -23,6 +23,26 @@ class Params(BaseModel):
 
 class NoParams(Params):
     pass
+
+
+GRAVITY_RANGE_M_S2 = (9.7, 9.9)  # Earth's surface: 9.76 (equatorial peaks) to 9.84 (poles)
+FIELD_RANGE_T = (1e-7, 1e-3)  # Earth's field is 25-65 uT; 1 mT is 20 times the strongest
+
+
+def _in_range(lo: float, hi: float, what: str, fix: str):
+    def check(value: float) -> float:
+        if not lo <= value <= hi:
+            raise ValueError(f"{value:g} is not {what} ({lo:g} to {hi:g}): a unit slip? {fix}")
+        return value
+    return check
+
+
+LocalGravity = Annotated[float, AfterValidator(_in_range(
+    *GRAVITY_RANGE_M_S2, "a local gravity in m/s^2", "give it in m/s^2, e.g. 9.80665"))]
+"""A params field of local gravity, m/s^2, refused outside Earth's range (``g_m_s2 = 98.1``)."""
+FieldStrength = Annotated[float, AfterValidator(_in_range(
+    *FIELD_RANGE_T, "a geomagnetic field in tesla", "give it in T, e.g. 50e-6 for 50 uT"))]
+"""A params field of magnetic field strength, T, refused when it reads as uT or gauss."""
 
 
 # --------------------------------------------------------------------------- readers
@@ -53,7 +73,7 @@ class Recording:
                 return next(iter(self.devices.values()))
             raise ReaderError(
                 f"{self.source}: holds {len(self.devices)} IMUs ({', '.join(sorted(self.devices))}); "
-                "choose one with `device = \"NAME\"` in the pipeline's [input] section"
+                "choose one with `device = \"NAME\"` in the pipeline's [input] section, or --device NAME"
             )
         try:
             return self.devices[name]

@@ -49,6 +49,8 @@ class CalibrationJson:
                 f"{context.get('session', '?')}: the calibration tables hold no triad"
             )
         doc = with_raw_units(calibration.to_dict(), context.get("raw_units") or {})
+        if context.get("verdict") is not None:  # spec/contracts.md; imupipe.verdict
+            doc["verdict"] = dict(context["verdict"])
         path = Path(out_dir) / self.filename
         write_text(path, json.dumps(doc, indent=2) + "\n")
         return [path]
@@ -107,7 +109,41 @@ class ResidualMapFiles:
         return written
 
 
-COMPONENTS: list = [CalibrationJson(), ResidualMapFiles()]
+class DiagnosisJson:
+    """``out_dir/diagnosis.json`` (``spec/contracts.md``) from the table of schema ``diagnosis``."""
+
+    name = "diagnosis"
+    writes = ("diagnosis.json",)
+
+    def export(
+        self, results: Mapping[str, pa.Table], context: Mapping[str, Any], out_dir: Path
+    ) -> list[Path]:
+        from . import schemas
+
+        written = []
+        for table in results.values():
+            if schemas.schema_of(table) == "diagnosis":
+                doc = json.loads(table.schema.metadata[b"imupipe.diagnosis"])
+                doc["session"] = str(context.get("session", doc.get("session", "")))
+                path = Path(out_dir) / "diagnosis.json"
+                write_text(path, json.dumps(doc, indent=1) + "\n")
+                written.append(path)
+                written += self._terms_into_calibration(doc, Path(out_dir) / "calibration.json")
+        return written
+
+    @staticmethod
+    def _terms_into_calibration(doc: dict, path: Path) -> list[Path]:
+        """The accepted terms join ``calibration.json`` as ``model_terms`` (effects.md names)."""
+        if not path.exists():
+            return []
+        cal = json.loads(path.read_text())
+        cal["model_terms"] = [{"effect": f["effect"], "sensor": f["sensor"], "parameters": f["parameters"]}
+                              for f in doc["findings"] if f["effect"] != "unknown"]
+        write_text(path, json.dumps(cal, indent=1) + "\n")
+        return [path]
+
+
+COMPONENTS: list = [CalibrationJson(), ResidualMapFiles(), DiagnosisJson()]
 
 
 @hookimpl

@@ -128,8 +128,10 @@ def check_rate(table: pa.Table, stream: str, where: str) -> None:
     """Raise ``ReaderError`` if an accel or gyro stream's rate is one no calibration can use
     (1 Hz data; time stamps in another unit than the file claims). Checked by ``imupipe run``;
     ``ingest`` converts whatever it is given."""
+    if stream not in RATE_CHECKED:
+        return
     t = table.column("t_ns").to_numpy()
-    if stream not in RATE_CHECKED or len(t) < 2:
+    if len(t) < 2:
         return
     interval = float(np.median(np.diff(t)))
     rate = 1e9 / interval if interval > 0 else float("inf")
@@ -160,6 +162,17 @@ def write_recording(recording: Recording, out_dir: Path) -> list[Path]:
 FACT_KEYS = ("imupipe.topic", "imupipe.device_id", "imupipe.frame_convention")
 
 
+def sections_table(sections) -> pa.Table:
+    """The ``sections`` table (schemas/sections.json) of ``Recording.meta["sections"]``: what a
+    pipeline reads as ``session.sections``."""
+    names = list(sections)
+    col = lambda key, typ: pa.array([sections[n][key] for n in names], type=typ)  # noqa: E731
+    table = pa.table({"name": pa.array(names, pa.string()), "t_start_ns": col("t_start_ns", pa.int64()),
+                      "t_end_ns": col("t_end_ns", pa.int64()), "start": col("start", pa.int64()),
+                      "end": col("end", pa.int64()), "stream": col("stream", pa.string())})
+    return schemas.stamp(table, "sections")
+
+
 def stream_facts(streams: dict[str, pa.Table]) -> dict[str, dict]:
     """Per stream, what exporters need beyond the calibration (JSON-ready).
 
@@ -170,6 +183,8 @@ def stream_facts(streams: dict[str, pa.Table]) -> dict[str, dict]:
     """
     out: dict[str, dict] = {}
     for name, table in sorted(streams.items()):
+        if "t_ns" not in table.column_names:  # not a sample stream (session.sections)
+            continue
         t = table.column("t_ns").to_numpy()
         facts: dict = {"samples": len(t)}
         if len(t) > 1:

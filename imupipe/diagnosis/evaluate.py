@@ -27,6 +27,8 @@ import numpy as np
 import pyarrow as pa
 
 from .. import schemas
+from scipy.stats import chi2 as chi2_dist
+
 from ..models import T_REF_C, TriadCalibration
 from ..observations import Rests, Turns
 from ..solvers.joint_ml import lower_gauge
@@ -37,6 +39,8 @@ from .linearised import Linearised, fit
 TRANSLATION_M = 0.15  # a motion that moves the unit further than this is a carry, not a rotation
 POWER_GAP_S = 1.0  # a gap in the samples longer than this is a power cycle (new turn-on bias)
 EXCLUDING = ("gap", "shock", "splice", "saturation")  # events that forbid integrating across
+THERMAL_SPAN_C = 1.0  # rests spanning less cannot tell k from the bias
+ESS_BATCHES = 8  # batch means per rest that measure its samples' correlation
 
 
 @dataclass(frozen=True)
@@ -65,6 +69,41 @@ class Evaluation:
     samples: pa.Table
     events: list[Event] = field(default_factory=list)
     turn_index: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    white_chi2: dict[str, float] = field(default_factory=dict)  # rest blocks under white noise
+
+
+def effective_counts(rests: Rests, streams: Mapping[str, tuple[np.ndarray, np.ndarray]]) -> Rests:
+    """The rests with each triad's sample count cut to its effective size where the samples
+    inside the rests are correlated (a hand-held or vibrating support, a slow sway).
+
+    The variance of each rest's mean is measured by ``ESS_BATCHES`` batch means and compared
+    with the white-noise one: the median ratio over rests (per triad, at least 1) applies to
+    every rest, and a rest whose own ratio exceeds the 99 % point of the white ratio
+    (chi-square with ``ESS_BATCHES - 1`` dof) keeps its own."""
+    crit = chi2_dist.ppf(0.99, ESS_BATCHES - 1) / (ESS_BATCHES - 1)
+    counts = {}
+    for sensor in ("accel", "gyro"):
+        if not rests.has(sensor) or sensor not in streams:
+            continue
+        t, y = streams[sensor]
+        n = np.maximum(rests.counts.get(sensor, rests.count), 1).astype(float)
+        ratio = np.ones(len(rests))
+        i0 = np.searchsorted(t, rests.t_start_s)
+        i1 = np.searchsorted(t, rests.t_end_s, "right")
+        for i in range(len(rests)):
+            seg = y[i0[i]:i1[i]]
+            k = len(seg) // ESS_BATCHES
+            if k < 2:
+                continue
+            means = seg[: k * ESS_BATCHES].reshape(ESS_BATCHES, k, 3).mean(1)
+            white = seg.var(0, ddof=1) / k
+            ok = white > 0
+            if ok.any():
+                ratio[i] = float(np.median(means.var(0, ddof=1)[ok] / white[ok]))
+        factor = np.where(ratio > crit, ratio, max(1.0, float(np.median(ratio))))
+        counts[sensor] = n / np.maximum(factor, 1.0)
+    return Rests(rests.t_start_s, rests.t_end_s, rests.count, rests.mean, rests.cov, rests.temperature,
+                 {**rests.counts, **counts}, rests.t0_ns)
 
 
 def power_on_rests(rests: Rests, t: np.ndarray) -> np.ndarray:
@@ -119,14 +158,18 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
              accel: TriadCalibration, gyro: TriadCalibration, gravity: float,
              q_accel: np.ndarray | None = None, q_gyro: np.ndarray | None = None,
              temperature: tuple[np.ndarray, np.ndarray] | None = None,
-             events: list[Event] = (), knot_s: float = 0.25, max_iter: int = 10) -> Evaluation:
+             events: list[Event] = (), knot_s: float = 0.25, max_iter: int = 10,
+             refit: bool = True) -> Evaluation:
     """The per-sample model of a session under ``accel``/``gyro`` (held fixed).
 
     ``streams``: ``{"accel": (t (k,) s, y (k, 3)), "gyro": ...}`` raw, seconds from the
     session's first sample (the rests' clock); ``turns``: the motions between consecutive rests;
     ``q_*``: the bias random walks' intensities (per axis; the joint fit's); ``temperature``:
     (t, T degC) for the samples inside motions; ``events``: those of the recording (motions
-    overlapping a gap, shock, splice or saturation are left out).
+    overlapping a gap, shock, splice or saturation are left out); ``refit``: the calibration is
+    refitted to every sample with the nuisances (the map then judges the model, not the
+    estimation error of a calibration fitted to rest means and turn end-points only, which
+    the samples of long turns resolve better); else it is held fixed.
     """
     events = list(events)
     t_a, y_a = streams["accel"]
@@ -140,15 +183,20 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
     S0, Q = lower_gauge(accel.S)
     start = Start(S0, accel.b0, Q @ gyro.M, gyro.b0, accel.k, gyro.k)
     noise = Noise.from_rests(rests, q_accel, q_gyro)
+    white_rests, rests = rests, effective_counts(rests, streams)
     power = power_on_rests(rests, t_a)
+    # the temperature coefficients count among the calibration's parameters (leverage, and what a
+    # candidate term is projected off) where the rests span enough temperature to determine them
+    T = rests.temperature
+    thermal = bool(np.all(np.isfinite(T)) and len(T) and np.ptp(T) >= THERMAL_SPAN_C)
 
     def build(sampled_turns: np.ndarray) -> tuple[JointModel, Linearised]:
         acc = MotionAccel.select(t_a, y_a, rests, kept)
         acc_keep = np.isin(acc.motion, sampled_turns)
         acc = MotionAccel(acc.t[acc_keep], acc.y[acc_keep], acc.motion[acc_keep])
-        model = JointModel(rests, kept, gravity, start, noise, fit_k=False, accel=acc, knot_s=knot_s,
+        model = JointModel(rests, kept, gravity, start, noise, fit_k=thermal, accel=acc, knot_s=knot_s,
                            power_on=power, temperature=temperature)
-        return model, fit(model, max_iter=max_iter, fixed_globals=True)
+        return model, fit(model, max_iter=max_iter, fixed_globals=not refit)
 
     sampled = np.arange(len(keep))
     model, lin = build(sampled)
@@ -166,7 +214,20 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
                             f"motion {j} holds a {', '.join(sorted(set(what)))}: left out of the model"))
     excluded = [e.window for e in events if e.kind in ("translation", "excluded_motion")]
     samples = sample_table(model, lin, streams, rests, Q, excluded)
-    return Evaluation(lin, Q, samples, events, keep)
+    return Evaluation(lin, Q, samples, events, keep, _white_rest_chi2(model, lin, white_rests))
+
+
+def _white_rest_chi2(model: JointModel, lin: Linearised, white: Rests) -> dict[str, float]:
+    """chi2 of the rest blocks at the same fit, whitened as if the rests' samples were white."""
+    out = {}
+    for block, sensor, W in (("accel_rest", "accel", model.W_a), ("gyro_rest", "gyro", model.W_g)):
+        q = model.q["wa" if sensor == "accel" else "wg"]
+        cov = white.cov_of_mean(sensor) + np.einsum("n,a->na", model.length / 12.0, q)[:, :, None] * np.eye(3)
+        e = np.linalg.solve(W, lin.r[lin.rows.of(block)].reshape(-1, 3, 1))[:, :, 0]  # raw residual
+        L = np.linalg.cholesky(cov)
+        z = np.linalg.solve(L, e[:, :, None])[:, :, 0]
+        out[block] = float((z ** 2).sum())
+    return out
 
 
 # --------------------------------------------------------------------------- per-sample table

@@ -29,6 +29,7 @@ from ..errors import ImupipeError, MissingExtraError
 from ..paths import check_out_dir, safe_name, under
 from ..plugins import Registry, make_registry
 from ..progress import progress
+from ..verdict import read_verdict
 from .cache import (
     Cache,
     claimant,
@@ -79,6 +80,7 @@ class Job:
     out: str
     registry: RegistrySpec = field(default_factory=RegistrySpec)
     export: tuple[str, ...] = ()  # format exporters (``--export``)
+    overrides: tuple[str, ...] = ()  # ``--set STAGE.PARAM=VALUE`` (and ``--device``)
 
     def failed(self, reason: str) -> JobResult:
         return JobResult(self.session, "failed", reason)
@@ -89,6 +91,7 @@ class JobResult:
     session: str
     status: str  # ok | failed
     detail: str  # the calibration.json written, or why the session failed
+    verdict: str = ""  # pass | warn | fail of the calibration written (imupipe.verdict)
 
 
 # --------------------------------------------------------------------------- one session
@@ -281,13 +284,16 @@ def _export(run: SessionRun, registry: Registry, run_dir: Path, formats: Sequenc
     }
     written = None
     calibration = {str(r): t for r in pipeline.export_calibration if (t := run.table(r)) is not None}
+    if calibration:
+        context["verdict"] = run_verdict(run, calibration, context["raw_units"])
     if pipeline.export_calibration:
         exporter = registry.get("exporters", "calibration_json")
         written = exporter.export(calibration, context, run_dir)[0]
     if pipeline.export_reports:
         tables = {str(r): t for r in pipeline.export_reports if (t := run.table(r)) is not None}
-        if "residual_map" in registry.names("exporters"):  # the map's files need no extra
-            registry.get("exporters", "residual_map").export(tables, context, run_dir)
+        for name in ("residual_map", "diagnosis"):  # their files need no extra
+            if name in registry.names("exporters"):
+                registry.get("exporters", name).export(tables, context, run_dir)
         if "report" in registry.names("exporters"):
             try:
                 registry.get("exporters", "report").export(tables, context, run_dir)
@@ -306,6 +312,32 @@ def _export(run: SessionRun, registry: Registry, run_dir: Path, formats: Sequenc
     return written
 
 
+VERDICT_SCHEMAS = ("validation", "control_errors", "events", "residual_map", "rests")
+
+
+def run_verdict(run: SessionRun, calibration: dict, raw_units: dict) -> dict:
+    """``verdict.judge`` on what the run produced: the calibration as exported, every output
+    of a schema the checks read (the reports' rests first), and the streams' facts."""
+    from ..exporters import with_raw_units
+    from ..models import Calibration
+    from ..schemas import schema_of
+    from ..verdict import judge
+
+    doc = with_raw_units(Calibration.from_tables(*calibration.values()).to_dict(), raw_units)
+    tables = {str(r): t for r in run.pipeline.export_reports
+              if (t := run.table(r)) is not None and schema_of(t) == "rests"}
+    for name, node in run.pipeline.nodes.items():
+        for port, sid in node.stage.outputs.items():
+            ref = Ref(name, port)
+            if sid in VERDICT_SCHEMAS and sid != "rests" and (t := run.table(ref)) is not None:
+                tables[str(ref)] = t
+    if not any(schema_of(t) == "rests" for t in tables.values()):
+        tables.update({f"{n}.{p}": t for n, node in run.pipeline.nodes.items()
+                       for p, sid in node.stage.outputs.items()
+                       if sid == "rests" and (t := run.table(Ref(n, p))) is not None})
+    return judge(doc, tables, run.stream_facts)
+
+
 # --------------------------------------------------------------------------- run
 
 
@@ -317,14 +349,18 @@ def run_sessions(
     *,
     registry: Registry | None = None,
     export: Sequence[str] = (),
+    overrides: Sequence[str] = (),
+    diagnose: bool = False,
 ) -> list[Path]:
     """``imupipe run``: every session in turn; a failing session does not stop the others.
+    ``diagnose``: the pipeline's residual map stage runs as the diagnosis (``imupipe diagnose``).
 
     Returns the calibration files written; raises the first session's error
     (naming how many failed) once all have been tried.
     """
     registry = registry or make_registry()
-    spec = load_pipeline(pipeline, registry)  # bad config: fail before reading any data
+    # bad config: fail before reading any data
+    spec = load_pipeline(pipeline, registry, tuple(overrides), diagnose=diagnose)
     export = parse_formats(export, registry)
     check_out_dir(out)
     # the same file named twice is one session
@@ -368,10 +404,11 @@ def run_job(job: Job) -> JobResult:
     """Worker: one session in its own process; never raises (a failure is a result)."""
     try:
         registry = job.registry.make()
-        spec = load_pipeline(Path(job.pipeline), registry)
+        spec = load_pipeline(Path(job.pipeline), registry, job.overrides)
         path = process_session(Path(job.session), job.session_id, spec, registry, Path(job.out),
                                export=job.export)
-        return JobResult(job.session, "ok", str(path) if path else "(no calibration exported)")
+        verdict = (read_verdict(path) or {}).get("status", "") if path else ""
+        return JobResult(job.session, "ok", str(path) if path else "(no calibration exported)", verdict)
     except ImupipeError as exc:
         return job.failed(str(exc))
     except Exception as exc:  # noqa: BLE001 - the batch reports it and goes on with the others
@@ -451,20 +488,25 @@ def batch(
     *,
     plugins: RegistrySpec | None = None,
     export: Sequence[str] = (),
+    overrides: Sequence[str] = (),
+    strict: bool = False,
 ) -> list[JobResult]:
-    """``imupipe batch``: each session an independent job; returns the failures.
+    """``imupipe batch``: each session an independent job; returns the failures (``strict``:
+    and the sessions whose verdict is warn or fail).
 
     Prints a summary table (session, status, output or reason).
     """
     spec = plugins or DEFAULT_SPEC
     registry = spec.make()
-    pipeline_obj = load_pipeline(pipeline, registry)  # bad config: fail before any job starts
+    overrides = tuple(overrides)
+    pipeline_obj = load_pipeline(pipeline, registry, overrides)  # bad config: fail before any job
     export = parse_formats(export, registry)
     runner = registry.get("executors", executor)
     sessions = expand_inputs(inputs, registry, out)
     check_out_dir(out)
     jobs_list = [
-        Job(str(s), sid, str(pipeline_obj.path.resolve()), str(Path(out).resolve()), spec, export)
+        Job(str(s), sid, str(pipeline_obj.path.resolve()), str(Path(out).resolve()), spec, export,
+            overrides)
         for s, sid in zip(sessions, session_ids(sessions), strict=True)
     ]
     with progress(quiet) as p:
@@ -472,7 +514,7 @@ def batch(
         kwargs = {"on_result": lambda *_: p.advance(task)} if _takes_on_result(runner) else {}
         results = runner.map(run_job, jobs_list, jobs, **kwargs)
     print(summary(results))
-    return [r for r in results if r.status != "ok"]
+    return [r for r in results if r.status != "ok" or (strict and r.verdict not in ("pass", ""))]
 
 
 def _takes_on_result(executor) -> bool:
@@ -487,7 +529,7 @@ def _takes_on_result(executor) -> bool:
 def summary(results: Sequence[JobResult]) -> str:
     """A plain table: session, status, output or reason."""
     rows = [("session", "status", "output / reason")] + [
-        (r.session, r.status, r.detail) for r in results
+        (r.session, f"{r.status} ({r.verdict})" if r.verdict else r.status, r.detail) for r in results
     ]
     w0, w1 = (max(len(r[i]) for r in rows) for i in (0, 1))
     failed = sum(r.status != "ok" for r in results)
@@ -505,21 +547,25 @@ def status(
     out: Path = Path("imupipe-out"),
     *,
     registry: Registry | None = None,
+    overrides: Sequence[str] = (),
 ) -> str:
     """``imupipe status``: per session, which stages are stale and why; nothing runs.
 
     With no sessions, those recorded in ``out`` (their run manifests). With no
     ``pipeline``, each session is compared with the pipeline its run.json names
-    (the default pipeline for a session never run, or when that file is gone).
+    (the default pipeline for a session never run, or when that file is gone), with the
+    ``--set`` overrides recorded there unless ``overrides`` are given.
     """
     registry = registry or make_registry()
-    given = load_pipeline(pipeline, registry) if pipeline is not None else None
-    loaded: dict[str, Pipeline] = {}
+    overrides = tuple(overrides)
+    given = load_pipeline(pipeline, registry, overrides) if pipeline is not None else None
+    loaded: dict[tuple, Pipeline] = {}
 
     def pipeline_for(manifest: dict | None) -> tuple[Pipeline, str]:
         if given is not None:
             return given, ""
-        recorded = ((manifest or {}).get("pipeline") or {}).get("path")
+        entry = (manifest or {}).get("pipeline") or {}
+        recorded, sets = entry.get("path"), tuple(overrides or entry.get("overrides") or ())
         if recorded and Path(recorded).is_file():
             key, note = str(Path(recorded).resolve()), f" from run.json: {recorded}"
         else:
@@ -527,9 +573,11 @@ def status(
             note = (
                 f" (default; {recorded} recorded in run.json is gone)" if recorded else " (default)"
             )
-        if key not in loaded:
-            loaded[key] = load_pipeline(Path(key), registry)
-        return loaded[key], note
+        if sets:
+            note += f" with --set {' --set '.join(sets)}"
+        if (key, sets) not in loaded:
+            loaded[key, sets] = load_pipeline(Path(key), registry, sets)
+        return loaded[key, sets], note
 
     out = Path(out)
     sessions = [Path(s) for s in sessions]

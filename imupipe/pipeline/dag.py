@@ -17,7 +17,7 @@ from ..components import BoundSolver, Params, Stage
 from ..errors import ConfigError
 
 SESSION = "session"
-SESSION_STREAMS = ("accel", "gyro", "mag", "temperature")
+SESSION_STREAMS = ("accel", "gyro", "mag", "temperature", "sections")
 
 
 @dataclass(frozen=True)
@@ -63,6 +63,7 @@ class Pipeline:
     export_calibration: tuple[Ref, ...] = ()
     export_reports: tuple[Ref, ...] = ()
     raw: Mapping = field(default_factory=dict)
+    overrides: tuple[str, ...] = ()  # ``--set STAGE.PARAM=VALUE`` applied to the file
 
     def downstream(self, key: str) -> set[str]:
         """Every node that reads, directly or not, an output of ``key``."""

@@ -29,7 +29,7 @@ import pyarrow as pa
 
 from .. import __version__, schemas
 from ..errors import ImupipeError, SchemaError, SolverError
-from ..ingest import check_rate, check_session_path, read_recording, stream_facts
+from ..ingest import check_rate, check_session_path, read_recording, sections_table, stream_facts
 from ..plugins import Registry
 from .cache import (
     Cache,
@@ -139,6 +139,8 @@ class _Source:
             self._streams = dict(recording.device(self.pipeline.device))
             for name, table in self._streams.items():
                 check_rate(table, name, f"{self.path} [{name}]")
+            if recording.meta.get("sections"):  # a manifest's [sections]: session.sections
+                self._streams["sections"] = sections_table(recording.meta["sections"])
             self._names = sorted(self._streams)
             self._units = {
                 name: unit.decode()
@@ -207,7 +209,8 @@ def run_session(
                 "streams": source._names if source else None,
                 "raw_units": source._units if source else None,
                 "stream_facts": source._facts if source else None,
-                "pipeline": {"name": pipeline.name, "path": str(Path(pipeline.path).resolve())},
+                "pipeline": {"name": pipeline.name, "path": str(Path(pipeline.path).resolve()),
+                             **({"overrides": list(pipeline.overrides)} if pipeline.overrides else {})},
                 "imupipe_version": __version__,
                 "error": error,
                 "stages": {k: r.to_dict() for k, r in run.records.items()},

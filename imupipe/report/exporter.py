@@ -41,6 +41,19 @@ def _summary(table: pa.Table) -> dict:
     return json.loads((table.schema.metadata or {}).get(b"imupipe.summary", b"{}"))
 
 
+def verdict_section(verdict: Mapping[str, Any] | None) -> list[str]:
+    """Markdown: the verdict (``imupipe.verdict``) and its reasons, then every check made."""
+    if not verdict:
+        return []
+    lines = [f"## Verdict: {verdict.get('status', '?')}", ""]
+    lines += [f"- {r}" for r in verdict.get("reasons", [])] or ["Every check passed."]
+    checks = verdict.get("checks", [])
+    if checks:
+        lines += ["", "| check | status | detail |", "|---|---|---|"]
+        lines += [f"| {c['check']} | {c['status']} | {c['detail']} |" for c in checks]
+    return [*lines, ""]
+
+
 def _fit_lines(stage: str, turns: pa.Table) -> list[str]:
     """Markdown: the fit's chi2/dof per block and the turn table's chi2 per row."""
     summary = _summary(turns)
@@ -119,6 +132,7 @@ class ReportExporter:
         written: list[Path] = []
         lines = [f"# Calibration report: {context.get('session', '?')}", "",
                  f"pipeline `{context.get('pipeline', '?')}`, imupipe {context.get('imupipe_version', '?')}", ""]
+        lines += verdict_section(context.get("verdict"))
         if context.get("skipped"):
             lines += ["Skipped stages: " + ", ".join(f"`{k}` ({v})" for k, v in dict(context["skipped"]).items()), ""]
         groups = _by_stage(results)
@@ -208,6 +222,13 @@ class ReportExporter:
                     figure("residuals_in_time", "whitened residuals along the session",
                            lambda fig, s=samples, doc=doc: residual_figures.draw_time_series(fig, s, doc),
                            panels=True)
+            elif sid == "diagnosis":
+                doc = json.loads(t.schema.metadata[b"imupipe.diagnosis"])
+                lines += residual_figures.diagnosis_lines(doc)
+                proved = [f for f in doc["findings"] if f["heldout_rms_before"] is not None]
+                if proved:
+                    figure("diagnosis_heldout", "held-out residual RMS without and with each term",
+                           lambda ax, f=proved: residual_figures.draw_heldout(ax, f))
             elif sid == "rests" and "accel_mean" in t.column_names:
                 u = _col(t, "accel_mean")
                 u = u / np.linalg.norm(u, axis=1, keepdims=True)

@@ -118,3 +118,33 @@ def draw_time_series(fig, samples: pa.Table, doc: dict, every: int = 5) -> None:
         ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0), markerscale=6)
         ax.grid(alpha=0.3)
     axes[1].set_xlabel("session time, min (rests shaded; flagged windows red; events magenta)")
+
+
+def diagnosis_lines(doc: dict) -> list[str]:
+    """The diagnosis in words: findings, effects this recording cannot see, effects not tested."""
+    lines = ["## Diagnosis: physics the calibrated model leaves out", ""]
+    if not doc["findings"]:
+        lines += ["No finding: the calibrated model explains the recording (every catalogue effect tested "
+                  f"at FDR q = {doc['fdr_q']}).", ""]
+    for f in doc["findings"]:
+        where = ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in f["windows"][:4])
+        lines += [f"- **{f['effect']}** ({f['sensor']}, {f['regime']}; {where}): {f['explanation']}"]
+    if doc["not_identifiable"]:
+        lines += ["", "Cannot be told apart from the nominal parameters on this recording:", ""]
+        lines += [f"- {n['effect']} ({n['sensor']}): would bias {', '.join(n['biases'])}; "
+                  f"reveal with {n['reveal_with']}" for n in doc["not_identifiable"]]
+    if doc.get("untested"):
+        lines += ["", "Not tested: " + "; ".join(f"{u['effect']} ({u['reason']})" for u in doc["untested"])]
+    return lines + [""]
+
+
+def draw_heldout(ax, findings: list[dict]) -> None:
+    """Held-out RMS (sensor units) without and with each accepted term."""
+    x = np.arange(len(findings))
+    before = [f["heldout_rms_before"] for f in findings]
+    after = [f["heldout_rms_after"] for f in findings]
+    ax.bar(x - 0.2, before, 0.4, label="without the term")
+    ax.bar(x + 0.2, after, 0.4, label="with the term")
+    ax.set_xticks(x, [f"{f['effect']}\n({f['sensor']})" for f in findings], fontsize=8)
+    ax.set_ylabel("held-out RMS, sensor units")
+    ax.legend(fontsize=8)

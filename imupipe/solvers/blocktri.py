@@ -222,7 +222,8 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
     """Levenberg-Marquardt on ``residuals(x_g, x_l) -> (r, J_g, J_l)``.
 
     Returns ``(x_g, x_l, r, J_g, J_l, iterations, converged)`` at the optimum. Converged when
-    the relative decrease of the cost falls below ``tol`` after a successful undamped-ish step.
+    the relative decrease of the cost falls below ``tol``; then one undamped Gauss-Newton step
+    polishes the solution (the damping would otherwise leave it ~1e-8 short).
     """
     r, J_g, J_l = residuals(x_g, x_l)
     cost = float(r @ r)
@@ -249,4 +250,9 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
         if decrease < tol:
             converged = True
             break
+    if converged:  # an undamped Gauss-Newton step lands on the optimum (quadratic convergence)
+        d_g, d_l = Bordered(J_g, J_l, offsets).step(r)
+        r2, J_g2, J_l2 = residuals(x_g + d_g, x_l + d_l)
+        if np.isfinite(r2 @ r2) and float(r2 @ r2) <= cost:
+            x_g, x_l, r, J_g, J_l = x_g + d_g, x_l + d_l, r2, J_g2, J_l2
     return x_g, x_l, r, J_g, J_l, it, converged

@@ -197,7 +197,7 @@ class JointML:
 
     name = "joint_ml"
     kind = "joint"
-    version = "4"
+    version = "5"
     params: ClassVar[type[Params]] = JointMLParams
 
     def solve(self, observations: JointObservations, params: JointMLParams) -> JointFit:

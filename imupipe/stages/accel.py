@@ -16,7 +16,7 @@ import numpy as np
 import pyarrow as pa
 from pydantic import Field, model_validator
 
-from ..components import BoundSolver, Params, Stage
+from ..components import BoundSolver, LocalGravity, Params, Stage
 from ..errors import ConfigError
 from ..models import triads_to_table
 from ..observations import EllipsoidObservations, Rests
@@ -41,7 +41,7 @@ class AccelParams(Params):
     rests whose raw direction is within ``detect_tol_deg`` of the sensor's +Y / +X axes;
     ``min_rest_s``: shorter rests are left out of the fit (reference rests stay in)."""
 
-    g_m_s2: float = Field(G_STANDARD, gt=0)
+    g_m_s2: LocalGravity = G_STANDARD
     y_up_rest: int | None = Field(None, ge=0)
     x_up_rest: int | None = Field(None, ge=0)
     y_up_time_s: float | None = None

@@ -17,7 +17,7 @@ import numpy as np
 import pyarrow as pa
 from pydantic import Field, field_validator
 
-from ..components import BoundSolver, Params, Stage
+from ..components import BoundSolver, FieldStrength, Params, Stage
 from ..models import triads_to_table
 from ..observations import EllipsoidObservations, Rests
 from ..solvers.mag_dip import circle_dip
@@ -38,7 +38,7 @@ class MagParams(Params):
     positive downward (None: measured); ``circle_windows_s``: [[start, end], ...] s
     since the session start, each one full turn of the rig base."""
 
-    field_T: float | None = Field(None, gt=0)
+    field_T: FieldStrength | None = None
     dip_deg: float | None = Field(None, ge=-90, le=90)
     circle_windows_s: tuple[tuple[float, float], ...] = ()
     min_rest_s: float = Field(0.0, ge=0)

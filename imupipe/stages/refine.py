@@ -22,7 +22,7 @@ import pyarrow as pa
 from pydantic import Field
 
 from .. import schemas
-from ..components import BoundSolver, Params, Stage
+from ..components import BoundSolver, LocalGravity, Params, Stage
 from ..errors import SchemaError
 from ..models import Calibration, TriadCalibration, triads_to_table
 from ..observations import Rests, Turns
@@ -37,7 +37,7 @@ STANDARD_GRAVITY = 9.80665
 class RefineParams(Params):
     solver: str = "joint_ml"
     solver_params: dict = Field(default_factory=dict)
-    g_m_s2: float = STANDARD_GRAVITY
+    g_m_s2: LocalGravity = STANDARD_GRAVITY
     """Local gravity magnitude, m/s^2 (the same value the accelerometer stage used)."""
 
 

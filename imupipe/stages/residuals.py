@@ -1,8 +1,8 @@
 """Stage ``map_residuals``: predict every sample under the calibration and map where it fails.
 
 Inputs: the session's raw ``accel`` and ``gyro`` (and ``temperature``), the
-segmentation's ``rests`` and ``turns`` (and ``events`` when the segmentation
-writes them), and the ``calibration`` to judge (the joint refinement's, whose
+segmentation's ``rests`` and ``turns`` (and the ``events`` of ``screen_events``:
+gaps, shocks, splices), and the ``calibration`` to judge (the joint refinement's, whose
 details carry the noise model it fitted: the bias walks). Outputs the per-sample
 residual table (``sample_residuals``) and the residual map (``residual_map``: its
 cells as rows, the whole ``residual_map.json`` document in the schema metadata).
@@ -19,8 +19,9 @@ import pyarrow as pa
 from pydantic import Field
 
 from .. import schemas
-from ..components import BoundSolver, Params, Stage
-from ..diagnosis.evaluate import Event, evaluate
+from ..components import BoundSolver, LocalGravity, Params, Stage
+from ..diagnosis.diagnose import diagnose
+from ..diagnosis.evaluate import Evaluation, Event, evaluate
 from ..diagnosis.residual_map import residual_map
 from ..models import Calibration
 from ..observations import Rests, Turns
@@ -28,6 +29,7 @@ from .refine import STANDARD_GRAVITY, temperature_stream
 from .segment import xyz
 
 MAP_KEY = b"imupipe.residual_map"
+DIAGNOSIS_KEY = b"imupipe.diagnosis"
 
 
 class MapParams(Params):
@@ -35,7 +37,7 @@ class MapParams(Params):
     """Spacing of the attitude-error knots inside each motion, s."""
     fdr_q: float = Field(0.05, gt=0, lt=1)
     """False-discovery rate of the flagged cells (Benjamini-Hochberg)."""
-    g_m_s2: float | None = Field(None, gt=0)
+    g_m_s2: LocalGravity | None = None
     """Local gravity, m/s^2; default: the one the calibration was fitted with."""
 
 
@@ -51,7 +53,8 @@ def _events(table: pa.Table | None) -> list[Event]:
     return out
 
 
-def map_residuals(inputs: Mapping[str, pa.Table], params: MapParams, solver: BoundSolver | None) -> dict:
+def evaluation(inputs: Mapping[str, pa.Table], params: MapParams) -> Evaluation:
+    """The per-sample model of the session under the input calibration (held fixed)."""
     rests = Rests.from_table(inputs["rests"])
     turns = Turns.from_tables(inputs["turns"], inputs["gyro"], rests.t0_ns)
     cal = Calibration.from_tables(inputs["calibration"])
@@ -64,12 +67,20 @@ def map_residuals(inputs: Mapping[str, pa.Table], params: MapParams, solver: Bou
     for s in ("accel", "gyro"):
         t_ns, y = xyz(inputs[s])
         streams[s] = ((t_ns - rests.t0_ns) * 1e-9, y)
-    ev = evaluate(streams, rests, turns, accel, gyro, g, q_a, q_g,
-                  temperature_stream(inputs.get("temperature"), rests.t0_ns),
-                  _events(inputs.get("events")), knot_s=params.knot_s)
+    return evaluate(streams, rests, turns, accel, gyro, g, q_a, q_g,
+                    temperature_stream(inputs.get("temperature"), rests.t0_ns),
+                    _events(inputs.get("events")), knot_s=params.knot_s)
+
+
+def map_residuals(inputs: Mapping[str, pa.Table], params: MapParams, solver: BoundSolver | None) -> dict:
+    ev = evaluation(inputs, params)
     doc = residual_map(ev, q=params.fdr_q)
-    cells = doc["cells"]
-    table = pa.table({
+    meta = {MAP_KEY.decode(): json.dumps(doc)}
+    return {"samples": ev.samples, "map": schemas.stamp(_cell_table(doc["cells"]), "residual_map", meta)}
+
+
+def _cell_table(cells: list[dict]) -> pa.Table:
+    return pa.table({
         "rank": np.array([c["rank"] for c in cells], dtype=np.int64),
         "sensor": [c["sensor"] for c in cells], "axes": [",".join(c["axes"]) for c in cells],
         "regime": [c["regime"] for c in cells], "variable": [c["variable"] for c in cells],
@@ -78,8 +89,6 @@ def map_residuals(inputs: Mapping[str, pa.Table], params: MapParams, solver: Bou
         "chi2_per_dof": [c["chi2_per_dof"] for c in cells], "p_value": [c["p_value"] for c in cells],
         "flagged": [c["flagged"] for c in cells],
     })
-    meta = {MAP_KEY.decode(): json.dumps(doc)}
-    return {"samples": ev.samples, "map": schemas.stamp(table, "residual_map", meta)}
 
 
 def _edge(x) -> float:
@@ -90,7 +99,7 @@ def _edge(x) -> float:
 
 STAGE = Stage(
     name="map_residuals",
-    version="1",
+    version="7",
     func=map_residuals,
     inputs={"accel": "accel", "gyro": "gyro", "temperature": "temperature", "rests": "rests",
             "turns": "turns", "calibration": "calibration", "events": "events"},
@@ -102,4 +111,38 @@ STAGE = Stage(
                 "Benjamini-Hochberg flags, change points and events.",
 )
 
-COMPONENTS = [STAGE]
+
+
+def diagnose_session(inputs: Mapping[str, pa.Table], params: MapParams, solver: BoundSolver | None) -> dict:
+    from ..plugins import make_registry
+
+    ev = evaluation(inputs, params)
+    doc = residual_map(ev, q=params.fdr_q)
+    registry = make_registry()
+    effects = {name: registry.get("effects", name) for name in registry.names("effects")}
+    diag = diagnose(ev, doc, effects, q=params.fdr_q)
+    table = pa.table({
+        "effect": [f["effect"] for f in diag["findings"]],
+        "sensor": [f["sensor"] for f in diag["findings"]],
+        "regime": [f["regime"] for f in diag["findings"]],
+        "p_value": pa.array([f["significance"]["p_value"] for f in diag["findings"]], pa.float64()),
+    })
+    return {"samples": ev.samples,
+            "diagnosis": schemas.stamp(table, "diagnosis", {DIAGNOSIS_KEY.decode(): json.dumps(diag)}),
+            "map": schemas.stamp(_cell_table(doc["cells"]), "residual_map", {MAP_KEY.decode(): json.dumps(doc)})}
+
+
+DIAGNOSE = Stage(
+    name="diagnose",
+    version="7",
+    func=diagnose_session,
+    inputs=STAGE.inputs,
+    outputs={"samples": "sample_residuals", "map": "residual_map", "diagnosis": "diagnosis"},
+    params=MapParams,
+    optional_inputs=frozenset({"temperature", "events"}),
+    description="The residual map, then every catalogue effect tested against the fitted per-sample "
+                "model (score tests, Benjamini-Hochberg forward selection, held-out check): "
+                "diagnosis.json.",
+)
+
+COMPONENTS = [STAGE, DIAGNOSE]

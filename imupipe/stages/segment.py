@@ -62,12 +62,24 @@ def windowed_variance(t_s: np.ndarray, v: np.ndarray, window_s: float) -> np.nda
     return out
 
 
-def noise_level(t_s: np.ndarray, var: np.ndarray, p: SegmentParams, what: str) -> float:
+def noise_level(t_s: np.ndarray, var: np.ndarray, p: SegmentParams, what: str,
+                threshold: float = 4.0) -> float:
+    """The noise variance: over the initial rest, checked to be still (below ``threshold``
+    times the robust level of the whole session), else the robust level."""
+    robust = float(np.quantile(var[np.isfinite(var)], p.noise_quantile)) if np.isfinite(var).any() \
+        else float("nan")
     if p.initial_rest_s > 0:
         sel = t_s <= t_s[0] + p.initial_rest_s
-        level = float(np.median(var[sel & np.isfinite(var)]))
+        level = float(np.median(var[sel & np.isfinite(var)])) if (sel & np.isfinite(var)).any() \
+            else float("nan")
+        if np.isfinite(level) and robust > 0 and level > threshold * robust:
+            raise SolverError(
+                f"segmentation: the first {p.initial_rest_s:g} s (initial_rest_s) are not still: the "
+                f"{what} variance there is {level / robust:.3g} times that of the quietest windows "
+                f"(still is below {threshold:g}); the recording does not start with a rest: set "
+                "initial_rest_s = 0 (noise from the quietest windows) or trim the recording")
     else:
-        level = float(np.quantile(var[np.isfinite(var)], p.noise_quantile))
+        level = robust
     if not np.isfinite(level) or level <= 0:
         raise SolverError(f"segmentation: cannot estimate the {what} noise (constant or empty signal); "
                           "give initial_rest_s over a true rest")
@@ -117,8 +129,8 @@ def segment(inputs: Mapping[str, pa.Table], params: SegmentParams, solver: Bound
     ta_s, tg_s = (t_a - t0) * 1e-9, (t_g - t0) * 1e-9
     va = windowed_variance(ta_s, a, params.window_s)
     vg = windowed_variance(tg_s, w, params.window_s)
-    na = noise_level(ta_s, va, params, "accelerometer")
-    ng = noise_level(tg_s, vg, params, "gyroscope")
+    na = noise_level(ta_s, va, params, "accelerometer", params.accel_threshold)
+    ng = noise_level(tg_s, vg, params, "gyroscope", params.gyro_threshold)
     vg_at_a = np.interp(ta_s, tg_s, np.where(np.isfinite(vg), vg, 1e300))
     still = (va < params.accel_threshold * na) & (vg_at_a < params.gyro_threshold * ng)
     runs = find_rests(t_a, still, params)
