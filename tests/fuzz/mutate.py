@@ -262,7 +262,7 @@ HOSTILE_STEMS = ["..", ".", "...", "a b", "-rf", "x" * 200, "ü_名前", ".hidde
 
 @mutation
 def hostile_name(rng, folder, suffix, data):
-    stem = str(rng.choice(HOSTILE_STEMS))
+    stem = ".." if rng.random() < 0.3 else str(rng.choice(HOSTILE_STEMS))
     return Case("hostile_name", "good", _write(folder, f"{stem}{suffix}", data),
                 notes={"stem": stem})
 
@@ -277,7 +277,9 @@ def hostile_devices(rng, folder, suffix, data):
         return _write_case(rng, folder, suffix, data)
     table = Csv.parse(data.decode("utf-8"))
     streams = []
-    devices = list(rng.choice(HOSTILE_DEVICES, size=2, replace=False))
+    devices = [".."] if rng.random() < 0.3 else []  # the one that escaped before issue 12
+    devices += [str(d) for d in rng.choice([d for d in HOSTILE_DEVICES if d not in devices],
+                                           size=2 - len(devices), replace=False)]
     for d in devices:
         for s in ("accel", "gyro"):
             sub = Csv(["t", "x", "y", "z"], [[r[0]] + [r[i] for i in table.cols(s)] for r in table.rows])
@@ -286,7 +288,8 @@ def hostile_devices(rng, folder, suffix, data):
                            f'device = {_toml_str(d)}\n')
     manifest = _write(folder, "m/session.toml", '[session]\nname = "h"\n' + "".join(
         s.replace('file = "', 'file = "../') for s in streams))
-    return Case("hostile_devices", "either", manifest, command=str(rng.choice(["ingest", "run"])),
+    command = "ingest" if rng.random() < 0.7 else "run"
+    return Case("hostile_devices", "either", manifest, command=command,
                 notes={"devices": devices})
 
 
