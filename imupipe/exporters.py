@@ -143,7 +143,31 @@ class DiagnosisJson:
         return [path]
 
 
-COMPONENTS: list = [CalibrationJson(), ResidualMapFiles(), DiagnosisJson()]
+class NoiseJson:
+    """``out_dir/noise.json``: the recording's own noise model (the ``estimate_noise`` stage), from
+    the table of schema ``noise`` among the results: per triad and axis noise density, random
+    walk, bias instability, quantisation, rate ramp, the per-sample white sigma and the sample
+    rate; a ``kalibr`` block (largest axis, Kalibr's names and units); the rests used."""
+
+    name = "noise_json"
+    writes = ("noise.json",)
+
+    def export(
+        self, results: Mapping[str, pa.Table], context: Mapping[str, Any], out_dir: Path
+    ) -> list[Path]:
+        from . import schemas
+
+        for table in results.values():
+            if schemas.schema_of(table) == "noise":
+                doc = {"session": str(context.get("session", "")),
+                       **json.loads(table.schema.metadata[b"imupipe.noise"])}
+                path = Path(out_dir) / "noise.json"
+                write_text(path, json.dumps(doc, indent=1) + "\n")
+                return [path]
+        return []
+
+
+COMPONENTS: list = [CalibrationJson(), ResidualMapFiles(), DiagnosisJson(), NoiseJson()]
 
 
 @hookimpl

@@ -291,7 +291,7 @@ def _export(run: SessionRun, registry: Registry, run_dir: Path, formats: Sequenc
         written = exporter.export(calibration, context, run_dir)[0]
     if pipeline.export_reports:
         tables = {str(r): t for r in pipeline.export_reports if (t := run.table(r)) is not None}
-        for name in ("residual_map", "diagnosis"):  # their files need no extra
+        for name in ("residual_map", "diagnosis", "noise_json"):  # their files need no extra
             if name in registry.names("exporters"):
                 registry.get("exporters", name).export(tables, context, run_dir)
         if "report" in registry.names("exporters"):

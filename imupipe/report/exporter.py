@@ -4,7 +4,9 @@ Tables are recognised by their schema, not by the pipeline's names for them:
 ``residuals`` (per stage: |g| and |B| errors before/after, the thermal fit, the
 gyro's turn residuals), ``turn_residuals`` (with the same stage's rest rows: the
 whitened residuals of a joint fit and its chi2/dof per block), ``validation``
-(turn-angle errors, eq. 39) and ``rests`` (positions on the sphere). Needs the
+(turn-angle errors, eq. 39), ``rests`` (positions on the sphere) and ``stillness``
+(what the segmentation saw, the signals with the rests shaded), ``noise`` with ``allan``
+(the noise stage's terms and Allan plot). Needs the
 ``report`` extra (matplotlib).
 """
 
@@ -22,7 +24,7 @@ from .. import schemas
 from ..errors import require
 from ..io import atomic_path, write_text
 from ..paths import safe_name, under
-from . import residual_figures
+from . import noise_figures, residual_figures, segment_figures
 
 
 def _col(table: pa.Table, name: str) -> np.ndarray:
@@ -229,6 +231,16 @@ class ReportExporter:
                 if proved:
                     figure("diagnosis_heldout", "held-out residual RMS without and with each term",
                            lambda ax, f=proved: residual_figures.draw_heldout(ax, f))
+            elif sid == "noise" and t.num_rows:
+                lines += noise_figures.lines(t)
+                curves = next((x for x in results.values() if schemas.schema_of(x) == "allan"), None)
+                if curves is not None and curves.num_rows:
+                    figure("allan_deviation", "Allan deviation of the longest rests",
+                           lambda fig, c=curves: noise_figures.draw(fig, c), panels=True)
+            elif sid == "stillness" and t.num_rows:
+                lines += segment_figures.lines(t)
+                figure("rests_in_time", "raw signals with the rests found shaded",
+                       lambda fig, t=t: segment_figures.draw(fig, t), panels=True)
             elif sid == "rests" and "accel_mean" in t.column_names:
                 u = _col(t, "accel_mean")
                 u = u / np.linalg.norm(u, axis=1, keepdims=True)

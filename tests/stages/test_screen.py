@@ -116,7 +116,7 @@ def test_an_initial_rest_that_is_not_still_is_refused(clean, capsys):
                  str(clean["folder"] / "out"), "--quiet"])
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1, err
-    assert "moving.csv" in err and "the first 50 s (initial_rest_s) are not still" in err
+    assert "moving.csv" in err and "the first 50 s are not still" in err
     assert "set initial_rest_s = 0" in err
 
 
