@@ -284,15 +284,16 @@ COMMANDS = {"ingest": _cmd_ingest, "run": _cmd_run, "batch": _cmd_batch, "status
             "pipelines": _cmd_pipelines, "diagnose": _cmd_diagnose}
 
 
-MAX_LINE = 600  # characters of an error line; echoed values beyond are cut
+MAX_LINE = 1500  # characters of an error line; an echoed value beyond is cut from its middle
 
 
 def one_line(text: str, limit: int = MAX_LINE) -> str:
-    """``text`` on one line, at most ``limit`` characters (an echoed value may be megabytes)."""
+    """``text`` on one line, at most about ``limit`` characters (an echoed value may be
+    megabytes): the middle is cut, so the start (file, problem) and the end (the fix) stay."""
     text = " ".join(str(text).split())
     if len(text) > limit:
-        cut = len(text) - limit
-        text = f"{text[:limit]}... ({cut} more characters)"
+        head, tail = text[: limit * 2 // 3], text[-(limit // 3):]
+        text = f"{head} ... ({len(text) - len(head) - len(tail)} characters cut) ... {tail}"
     return text
 
 
