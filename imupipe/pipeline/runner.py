@@ -233,12 +233,12 @@ def _run_node(node: Node, run: SessionRun, source: _Source, registry: Registry) 
     cached = run.cache.entry(key)
     if cached is not None:
         _log_warnings(node.key, cached["warnings"])  # said again: the result still has them
-        registry.pm.hook.imupipe_after_stage(stage=node.key, key=key, cached=True, seconds=0.0)
+        _observe(registry, "imupipe_after_stage", stage=node.key, key=key, cached=True, seconds=0.0)
         return StageRecord(
             "cached", key, parts.to_dict(), cached["outputs"], warnings=cached["warnings"]
         )
 
-    registry.pm.hook.imupipe_before_stage(stage=node.key, key=key)
+    _observe(registry, "imupipe_before_stage", stage=node.key, key=key)
     where = f"{source.path}: stage {node.key!r} ({node.stage.name})"
     inputs = {}
     for port in digests:
@@ -270,7 +270,8 @@ def _run_node(node: Node, run: SessionRun, source: _Source, registry: Registry) 
     seconds = time.perf_counter() - t0
     _check_outputs(node, outputs, where)
     stored = run.cache.store(parts, {p: outputs[p] for p in node.stage.outputs}, node.key, said)
-    registry.pm.hook.imupipe_after_stage(stage=node.key, key=key, cached=False, seconds=seconds)
+    _observe(registry, "imupipe_after_stage", stage=node.key, key=key, cached=False,
+             seconds=seconds)
     return StageRecord("ran", key, parts.to_dict(), stored, seconds=seconds, warnings=said)
 
 
@@ -281,6 +282,21 @@ _NUMPY_FP = re.compile(r"(invalid value|divide by zero|overflow|underflow) encou
 
 def _is_numpy_fp_warning(w: warnings.WarningMessage) -> bool:
     return issubclass(w.category, RuntimeWarning) and bool(_NUMPY_FP.search(str(w.message)))
+
+
+def _observe(registry: Registry, hook: str, **kwargs) -> None:
+    """Call a lifecycle hook (they observe, never change data) of every plugin; one that
+    raises is that plugin's failure: said once, the plugin listed broken, the run goes on."""
+    for impl in reversed(getattr(registry.pm.hook, hook).get_hookimpls()):
+        name = registry.pm.get_name(impl.plugin) or repr(impl.plugin)
+        if name in registry.broken:
+            continue
+        try:
+            impl.function(**{a: kwargs[a] for a in impl.argnames if a in kwargs})
+        except Exception as exc:  # noqa: BLE001 - a plugin's observer must not stop the run
+            registry.broken[name] = ("", "", f"{hook} raised {type(exc).__name__}: {exc}")
+            log.warning("plugin %r: %s raised %s: %s; its lifecycle hooks are ignored from now on",
+                        name, hook, type(exc).__name__, exc)
 
 
 def _log_warnings(stage: str, messages: list[str]) -> None:

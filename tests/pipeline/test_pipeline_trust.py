@@ -149,3 +149,20 @@ def test_batch_skips_fifos_and_link_loops_in_a_folder(tmp_path, toy_pipeline, ca
     assert failures == []
     assert (tmp_path / "out" / "good" / "calibration.json").is_file()
     assert "pipe.arrowsession: skipped: not a regular file" in caplog.text
+
+
+class _RaisingObserver:
+    @hookimpl
+    def imupipe_after_stage(self, stage, key, cached, seconds):
+        raise RuntimeError("observer bug")
+
+
+def test_a_raising_lifecycle_hook_does_not_stop_the_run(tmp_path, toy_registry, toy_pipeline,
+                                                       session, caplog):
+    registry, counter = toy_registry(_RaisingObserver())
+    (path,) = run_sessions([session], toy_pipeline, tmp_path / "out", quiet=True,
+                           registry=registry)
+    assert path.is_file()
+    assert sorted(counter.ran) == ["accel", "gyro", "mag", "scaled"]  # the others still observe
+    assert caplog.text.count("imupipe_after_stage raised RuntimeError: observer bug") == 1
+    assert any("observer bug" in why for _, _, why in registry.broken.values())
