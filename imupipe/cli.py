@@ -7,6 +7,7 @@ what is wrong), 1 internal failure, 3 with ``--strict`` when a verdict is warn o
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import re
@@ -120,7 +121,7 @@ class _LineFormatter(logging.Formatter):
     """``imupipe: warning: <message>``: one line per record, like the error lines."""
 
     def format(self, record: logging.LogRecord) -> str:
-        return f"imupipe: {record.levelname.lower()}: {record.getMessage()}"
+        return f"imupipe: {record.levelname.lower()}: {one_line(record.getMessage(), 4 * MAX_LINE)}"
 
 
 def _parse_assignments(option: str, items: list[str], example: str) -> dict[str, object]:
@@ -151,7 +152,9 @@ def _cmd_ingest(args) -> int:
 
     registry = make_registry()
     recording = read_recording(args.session, registry)
-    out = args.out or Path(f"{args.session.stem}.tables")
+    from .paths import safe_name
+
+    out = args.out or Path(f"{safe_name(args.session.stem, 'session')}.tables")
     for path in write_recording(recording, out):
         print(path)
     return 0
@@ -167,6 +170,9 @@ def _cmd_plugins(args) -> int:
     for (plugin, dist, ver), provides in sorted(rows.items()):
         print(f"{plugin}  ({dist or '-'} {ver or ''})".rstrip())
         print(f"    {', '.join(provides)}")
+    for plugin, (dist, ver, why) in sorted(registry.broken.items()):
+        print(f"{plugin}  ({dist or '-'} {ver or ''})  BROKEN".replace(" )", ")"))
+        print(f"    {one_line(why)}")
     return 0
 
 
@@ -285,20 +291,75 @@ COMMANDS = {"ingest": _cmd_ingest, "run": _cmd_run, "batch": _cmd_batch, "status
             "pipelines": _cmd_pipelines, "diagnose": _cmd_diagnose}
 
 
+MAX_LINE = 1500  # characters of an error line; an echoed value beyond is cut from its middle
+
+
+def one_line(text: str, limit: int = MAX_LINE) -> str:
+    """``text`` on one line, at most about ``limit`` characters (an echoed value may be
+    megabytes): the middle is cut, so the start (file, problem) and the end (the fix) stay."""
+    text = " ".join(str(text).split())
+    if len(text) > limit:
+        head, tail = text[: limit * 2 // 3], text[-(limit // 3):]
+        text = f"{head} ... ({len(text) - len(head) - len(tail)} characters cut) ... {tail}"
+    return text
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Python warnings outside the stages as one ``imupipe: warning:`` line each."""
+    log.warning("%s", one_line(str(message)))
+
+
+def _is_write_refused(exc: BaseException) -> bool:
+    import errno
+
+    return isinstance(exc, OSError) and exc.errno in (
+        errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.ENAMETOOLONG)
+
+
 def main(argv: list[str] | None = None) -> int:
+    import os
+    import warnings
+
     args = _parser().parse_args(argv)
     handler = logging.StreamHandler()
     handler.setLevel(logging.WARNING)  # also for libraries that raise their own loggers' levels
     handler.setFormatter(_LineFormatter())
     logging.basicConfig(level=logging.WARNING, handlers=[handler])
-    try:
-        return COMMANDS[args.command](args)
-    except ImupipeError as exc:
-        print(f"imupipe {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("imupipe: interrupted", file=sys.stderr)
-        return 130
+    with warnings.catch_warnings():
+        warnings.showwarning = _show_warning
+        # numpy's floating-point complaints (divide by zero, ...) are symptoms, never the news:
+        # the error line or the result's own checks say what is wrong
+        warnings.filterwarnings("ignore", category=RuntimeWarning,
+                                message=r"(invalid value|divide by zero|overflow|underflow) "
+                                        r"encountered|Mean of empty slice|Degrees of freedom")
+        try:
+            return COMMANDS[args.command](args)
+        except ImupipeError as exc:
+            print(f"imupipe {args.command}: error: {one_line(exc)}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print("imupipe: interrupted", file=sys.stderr)
+            return 130
+        except BrokenPipeError:  # the reader of our output went away (``| head``)
+            with contextlib.suppress(OSError):
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return 0
+        except RecursionError:
+            print(f"imupipe {args.command}: error: input nested too deeply to read (a "
+                  "self-referencing or absurdly deep file); simplify it", file=sys.stderr)
+            return 2
+        except Exception as exc:
+            if _is_write_refused(exc):  # a full disk, a read-only or forbidden folder: the user's
+                where = f"{exc.filename}: " if exc.filename else ""
+                print(f"imupipe {args.command}: error: {one_line(where + (exc.strerror or str(exc)))}"
+                      "; free space or give a folder you can write with --out", file=sys.stderr)
+                return 2
+            if os.environ.get("IMUPIPE_TRACEBACK"):
+                raise
+            print(f"imupipe {args.command}: internal error: {one_line(f'{type(exc).__name__}: {exc}')}"
+                  " (a bug in imupipe or a plugin; rerun with IMUPIPE_TRACEBACK=1 for the "
+                  "traceback and report it)", file=sys.stderr)
+            return 1
 
 
 if __name__ == "__main__":

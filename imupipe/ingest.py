@@ -6,7 +6,7 @@ claims its schema, has strictly increasing time and finite values.
 
 from __future__ import annotations
 
-import re
+import os
 from pathlib import Path
 
 import numpy as np
@@ -16,18 +16,47 @@ from . import schemas
 from .components import Recording
 from .errors import ReaderError, SchemaError
 from .io import write_arrow
+from .paths import check_out_dir, safe_name, under, unique_names
 from .plugins import Registry
 
 STREAMS = ("accel", "gyro", "mag", "temperature")
 TRIADS = ("accel", "gyro", "mag")
+# Plausibility bounds of every reader's output (beyond them the file's units or clock are wrong):
+MAX_ABS_VALUE = 1e12  # no sensor, in SI or raw counts, reads more; 1e300 would overflow the fits
+RATE_CHECKED = ("accel", "gyro")  # a magnetometer or thermometer may well be slow
+MIN_RATE_HZ, MAX_RATE_HZ = 5.0, 1e5  # 1 Hz data, or stamps off by 1000, cannot be calibrated
+
+
+def check_session_path(path: Path) -> Path:
+    """``path`` if it is a regular file (or a folder, which callers judge); else one clear error.
+
+    Refused: a missing file, a symbolic-link loop, a FIFO, socket or device file
+    (which would be read forever or not at all).
+    """
+    import errno
+    import stat
+
+    path = Path(path)
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise ReaderError(f"{path}: a loop of symbolic links; point it at a recording") from None
+        if exc.errno in (errno.ENOENT, errno.ENOTDIR):
+            raise ReaderError(f"{path}: no such file") from None
+        raise ReaderError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        kind = ("a FIFO (named pipe)" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode)
+                else "a device file")
+        raise ReaderError(f"{path}: is {kind}, not a recording file; copy the data to a file first")
+    return path
 
 
 def choose_reader(path: Path, registry: Registry, name: str | None = None):
     """The reader for ``path``: ``name`` if given, else the one that claims the file."""
     if name is not None:
         return registry.get("readers", name)
-    if not path.exists():
-        raise ReaderError(f"{path}: no such file")
+    check_session_path(path)
     if path.is_dir():
         raise ReaderError(f"{path}: is a directory; give a recording file or a session.toml")
     with open(path, "rb") as f:
@@ -61,7 +90,7 @@ def read_recording(path: Path | str, registry: Registry, reader: str | None = No
 
 
 def check_stream(table: pa.Table, stream: str, where: str) -> None:
-    """Raise ``ReaderError`` if a sample table is empty, unordered or has non-finite values."""
+    """Raise ``ReaderError`` if a sample table is empty, unordered, has non-finite or absurd values."""
     try:
         schemas.check(table, stream, where)
     except SchemaError as exc:
@@ -87,22 +116,47 @@ def check_stream(table: pa.Table, stream: str, where: str) -> None:
         if bad.any():
             i = int(np.argmax(bad))
             raise ReaderError(f"{where}: non-finite value {values[i]} in column {name!r} at sample {i}")
+        huge = np.abs(values) > MAX_ABS_VALUE
+        if huge.any():
+            i = int(np.argmax(huge))
+            raise ReaderError(f"{where}: value {values[i]:.3g} in column {name!r} at sample {i} is "
+                              f"beyond any sensor's range (|x| > {MAX_ABS_VALUE:g}); check the "
+                              "file's unit and scale")
+
+
+def check_rate(table: pa.Table, stream: str, where: str) -> None:
+    """Raise ``ReaderError`` if an accel or gyro stream's rate is one no calibration can use
+    (1 Hz data; time stamps in another unit than the file claims). Checked by ``imupipe run``;
+    ``ingest`` converts whatever it is given."""
+    if stream not in RATE_CHECKED:
+        return
+    t = table.column("t_ns").to_numpy()
+    if len(t) < 2:
+        return
+    interval = float(np.median(np.diff(t)))
+    rate = 1e9 / interval if interval > 0 else float("inf")
+    if not MIN_RATE_HZ <= rate <= MAX_RATE_HZ:
+        raise ReaderError(
+            f"{where}: sample rate {rate:.3g} Hz (median interval {interval * 1e-9:.3g} s) is "
+            f"outside {MIN_RATE_HZ:g} Hz .. {MAX_RATE_HZ:g} Hz that an IMU calibration needs; "
+            "are the time stamps in the unit the file claims (s, ms, us, ns)?")
 
 
 def write_recording(recording: Recording, out_dir: Path) -> list[Path]:
-    """Write every canonical table as Arrow IPC: ``out_dir/<device>/<stream>.arrow``."""
+    """Write every canonical table as Arrow IPC: ``out_dir/<device>/<stream>.arrow``.
+
+    A device name is made a safe folder name, unique among the recording's
+    devices (``paths.unique_names``), and every path is checked to lie in ``out_dir``.
+    """
+    out_dir = check_out_dir(Path(out_dir))
+    folders = unique_names(recording.devices)
     written = []
     for device, streams in recording.devices.items():
         for stream, table in streams.items():
-            path = Path(out_dir) / safe_name(device) / f"{stream}.arrow"
+            path = under(out_dir, folders[device], f"{safe_name(stream, 'stream')}.arrow")
             write_arrow(path, table)
             written.append(path)
     return written
-
-
-def safe_name(name: str) -> str:
-    """A device or topic name as a file-system name (``/imu0/data`` -> ``imu0_data``)."""
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "imu"
 
 
 FACT_KEYS = ("imupipe.topic", "imupipe.device_id", "imupipe.frame_convention")

@@ -35,6 +35,7 @@ from .. import schemas
 from ..errors import ImupipeError
 from ..io import write_text
 from ..models import SENSORS, UNITS, Calibration, TriadCalibration
+from ..paths import under
 
 log = logging.getLogger("imupipe.formats")
 
@@ -204,7 +205,7 @@ def write_files(out_dir: Path, texts: Mapping[str, str]) -> list[Path]:
     """Write every file atomically (all texts are rendered before the first write)."""
     paths = []
     for name, text in texts.items():
-        path = Path(out_dir) / name
+        path = under(Path(out_dir), name)  # a name never leads out of the export folder
         write_text(path, text)
         paths.append(path)
     return paths

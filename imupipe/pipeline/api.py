@@ -16,6 +16,7 @@ from __future__ import annotations
 import glob
 import hashlib
 import logging
+import os
 import shutil
 import traceback
 import warnings
@@ -25,12 +26,21 @@ from pathlib import Path
 
 from .. import __version__
 from ..errors import ImupipeError, MissingExtraError
+from ..paths import check_out_dir, safe_name, under
 from ..plugins import Registry, make_registry
 from ..progress import progress
 from ..threads import blas_threads as check_blas_threads
 from ..threads import limited_blas
 from ..verdict import read_verdict
-from .cache import Cache, claimant, distribution, read_manifest, reader_identity, session_digest
+from .cache import (
+    Cache,
+    claimant,
+    distribution,
+    read_manifest,
+    reader_identity,
+    session_digest,
+    write_manifest,
+)
 from .config import default_pipeline_path, load_pipeline
 from .dag import Pipeline, Ref
 from .export import EXPORT_DIR, ExportError, export_formats, noise_tables, parse_formats
@@ -93,18 +103,32 @@ class JobResult:
 
 
 def session_ids(sessions: Sequence[Path]) -> list[str]:
-    """A folder name per session: the stem (a manifest's folder name), unique within the list."""
+    """A folder name per session: the stem (a manifest's folder name), unique within the list.
+
+    The stem is made a safe folder name (``paths.safe_name``: never ``..``, a
+    separator or hidden); names that then coincide (case aside) get a hash of the
+    session's path.
+    """
 
     def stem(p: Path) -> str:
-        return p.parent.resolve().name if p.name.lower() in FOLDER_SESSIONS else p.stem
+        return _resolved(p.parent).name if p.name.lower() in FOLDER_SESSIONS else p.stem
 
-    stems = [stem(Path(s)) for s in sessions]
+    stems = [safe_name(stem(Path(s)), "session") for s in sessions]
+    folded = [s.lower() for s in stems]
     out = []
     for s, path in zip(stems, sessions, strict=True):
-        if stems.count(s) > 1:
-            s = f"{s}-{hashlib.sha256(str(Path(path).resolve()).encode()).hexdigest()[:8]}"
+        if folded.count(s.lower()) > 1:
+            s = f"{s}-{hashlib.sha256(str(_resolved(path)).encode()).hexdigest()[:8]}"
         out.append(s)
     return out
+
+
+def _resolved(path: Path | str) -> Path:
+    """``path`` resolved; as an absolute path when it cannot be (a loop of links: said later)."""
+    try:
+        return Path(path).resolve()
+    except (OSError, RuntimeError):
+        return Path(os.path.abspath(path))
 
 
 def process_session(
@@ -113,34 +137,141 @@ def process_session(
 ) -> Path | None:
     """Run ``pipeline`` on one session and export; return the calibration.json written (if any).
 
-    On failure nothing is left claiming success: what this pipeline's exporters
-    write (calibration.json; the report's report.md and figures/) is removed if an
-    earlier run left it (run.json records the error for ``status``).
+    Exporters write into a private staging folder ``<session-id>/.part-<pid>-<token>/``
+    that is moved into place only when every one of them has succeeded: a failing
+    run leaves the previous result (or a concurrent run's) exactly as it was and
+    removes only its own staging folder (run.json records the error for ``status``).
+    Staging folders and ``.part`` files left by a killed run are removed by the next.
     """
-    run_dir = Path(out) / session_id
+    out = Path(out)
+    run_dir = under(out, session_id)
+    cache = Cache(under(out, CACHE_DIR))
+    remove_stale_parts(run_dir)
+    remove_stale_parts(cache.root, depth=3)
+    run = run_session(session, pipeline, registry, cache, run_dir / MANIFEST, on_stage)
+    # a warm run: every export in place as made from these tables, and no export/ to clear
+    if not export and not (run_dir / EXPORT_DIR).exists() and \
+            (done := _exports_in_place(run, registry, run_dir)) is not None:
+        return done
+    staging = _staging_dir(run_dir)
     try:
-        run = run_session(
-            session, pipeline, registry, Cache(Path(out) / CACHE_DIR), run_dir / MANIFEST, on_stage
-        )
-        return _export(run, registry, run_dir, export)
-    except ExportError:
-        raise  # the calibration stands; only a requested format could not be written
-    except BaseException:
-        for name in _export_names(pipeline, registry):
-            _remove(run_dir / name)
+        written = _export(run, registry, staging, export)
+    except ExportError:  # the calibration stands; only a requested format could not be written
+        _commit(staging, run_dir)
         raise
+    except BaseException as exc:
+        _remove(staging)
+        _record_error(run_dir / MANIFEST, f"{type(exc).__name__}: {exc}")
+        raise
+    _commit(staging, run_dir)
+    return None if written is None else run_dir / Path(written).relative_to(staging)
 
 
-def _export_names(pipeline: Pipeline, registry: Registry) -> list[str]:
-    """Names under the session's folder that the pipeline's exporters write."""
-    names = [EXPORT_DIR]
-    if pipeline.export_calibration:
-        names.append(CALIBRATION)
-    if pipeline.export_reports:
-        for name in ("report", "residual_map", "diagnosis", "noise_json"):
-            if name in registry.names("exporters"):
-                names += getattr(registry.get("exporters", name), "writes", ())
-    return names
+PART = ".part"
+
+
+def _record_error(manifest_path: Path, error: str) -> None:
+    """Say in run.json that the run failed after its stages (while exporting)."""
+    manifest = read_manifest(manifest_path)
+    if manifest is not None and not manifest.get("error"):
+        manifest.pop("format", None)
+        write_manifest(manifest_path, {**manifest, "error": error})
+
+
+def _staging_dir(run_dir: Path) -> Path:
+    import os
+    import secrets
+
+    staging = under(run_dir, f"{PART}-{os.getpid()}-{secrets.token_hex(4)}")
+    staging.mkdir(parents=True)
+    return staging
+
+
+def _commit(staging: Path, run_dir: Path) -> None:
+    """Move every staged file or folder into ``run_dir``; ``export/`` always follows calibration.json."""
+    import os
+
+    try:
+        names = sorted(p.name for p in staging.iterdir())
+        if EXPORT_DIR not in names:  # no format asked for this time: none stays from before
+            old = under(run_dir, EXPORT_DIR)
+            if old.exists() or old.is_symlink():
+                _remove_aside(old, staging)
+        for name in names:
+            src, dst = staging / name, under(run_dir, name)
+            if src.is_dir():
+                for _ in range(5):  # a concurrent run may put its own in place meanwhile
+                    if dst.exists() or dst.is_symlink():
+                        _remove_aside(dst, staging)
+                    try:
+                        os.rename(src, dst)
+                        break
+                    except OSError:
+                        continue
+                else:
+                    raise ImupipeError(f"{dst}: could not be replaced (another run keeps writing it)")
+            else:
+                os.replace(src, dst)
+    finally:
+        _remove(staging)
+
+
+def _remove_aside(path: Path, staging: Path) -> None:
+    """Remove ``path`` by first renaming it into the staging folder (a reader never sees half)."""
+    import os
+    import secrets
+
+    aside = staging / f"{PART}-old-{secrets.token_hex(4)}"
+    try:
+        os.rename(path, aside)
+    except FileNotFoundError:
+        return
+    _remove(aside)
+
+
+def remove_stale_parts(folder: Path, depth: int = 1) -> None:
+    """Remove staging folders and ``.part`` files under ``folder`` left by runs no longer alive.
+
+    Their names carry the writer's process id (``.part-<pid>-...``, ``.<name>.<pid>.<x>.part``);
+    one whose process still runs is a concurrent run's and is left alone, unless a day old.
+    """
+    import time
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        return
+    candidates = [p for d in range(depth) for p in folder.glob("/".join(["*"] * d + [".*"]))
+                  if p.name.startswith(f"{PART}-") or p.name.endswith(PART)]
+    now = time.time()
+    for p in candidates:
+        pid = _part_pid(p.name)
+        try:
+            old = now - p.lstat().st_mtime > 86400
+        except FileNotFoundError:
+            continue
+        if old or pid is None or not _alive(pid):
+            _remove(p)
+
+
+def _part_pid(name: str) -> int | None:
+    import re
+
+    m = re.match(r"^\.part-(\d+)-", name) or re.search(r"\.(\d+)\.[^.]*\.part$", name)
+    return int(m.group(1)) if m else None
+
+
+def _alive(pid: int) -> bool:
+    import os
+
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def _remove(path: Path) -> None:
@@ -189,6 +320,22 @@ def _export_key(name: str, exporter, refs, stages: dict, context: dict, verdict:
                 registry: Registry) -> str:
     return export_key(name, exporter, distribution(registry, "exporters", name),
                       table_digests(refs, stages), {**context, "verdict_inputs": verdict})
+
+
+def _exports_in_place(run: SessionRun, registry: Registry, run_dir: Path) -> Path | None:
+    """The calibration.json when every export's files are in ``run_dir`` as made from this
+    run's tables (nothing to rewrite), else None."""
+    pipeline = run.pipeline
+    if not pipeline.export_calibration:
+        return None
+    stages = {k: r.to_dict() for k, r in run.records.items()}
+    context = export_context(str(run.session), pipeline, stages, run.raw_units)
+    verdict = verdict_inputs(stages, run.stream_facts)
+    for name, exporter, refs in _exporters(pipeline, registry):
+        key = _export_key(name, exporter, refs, stages, context, verdict, registry)
+        if not cacheable(exporter) or in_place(run_dir, name, key) is None:
+            return None
+    return run_dir / CALIBRATION
 
 
 def _export(run: SessionRun, registry: Registry, run_dir: Path, formats: Sequence[str] = ()
@@ -321,8 +468,9 @@ def run_sessions(
     # bad config: fail before reading any data
     spec = load_pipeline(pipeline, registry, tuple(overrides), diagnose=diagnose)
     export = parse_formats(export, registry)
+    check_out_dir(out)
     # the same file named twice is one session
-    sessions = list({Path(s).resolve(): Path(s) for s in sessions}.values())
+    sessions = list({_resolved(s): Path(s) for s in sessions}.values())
     written, failures = [], []
     with limited_blas(blas_threads), progress(quiet) as p:
         all_task = p.add_task("sessions", total=len(sessions))
@@ -396,7 +544,7 @@ def expand_inputs(inputs: Sequence[str], registry: Registry, out: Path | None = 
             raise ImupipeError(f"{item}: no such file, directory or matching glob")
         for m in matches:
             found += _walk(m, readers, skip) if m.is_dir() else [m]
-    unique = list(dict.fromkeys(p.resolve() for p in found))
+    unique = list(dict.fromkeys(_resolved(p) for p in found))
     if not unique:
         suffixes = sorted({s for r in readers for s in getattr(r, "suffixes", ())})
         raise ImupipeError(
@@ -422,6 +570,9 @@ def _walk(folder: Path, readers: list, skip: Path | None) -> list[Path]:
             continue
         candidates = [r for r in readers if p.suffix.lower() in getattr(r, "suffixes", ())]
         if not candidates:
+            continue
+        if not p.is_file():  # a FIFO, a device, a dangling link or a loop of links
+            log.warning("%s: skipped: not a regular file", p)
             continue
         with open(p, "rb") as f:
             head = f.read(64)
@@ -464,6 +615,7 @@ def batch(
     export = parse_formats(export, registry)
     runner = registry.get("executors", executor)
     sessions = expand_inputs(inputs, registry, out)
+    check_out_dir(out)
     jobs_list = [
         Job(str(s), sid, str(pipeline_obj.path.resolve()), str(Path(out).resolve()), spec, export,
             overrides, blas_threads)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
@@ -29,15 +30,17 @@ from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
+from pyarrow import ipc
 
 from .. import __version__
 from ..errors import ImupipeError
-from ..io import file_digest, read_arrow, table_digest, write_arrow, write_text
+from ..io import arrow_bytes, file_digest, table_digest, write_bytes, write_text
 from ..plugins import Registry
 from .dag import Node
 
 PROVENANCE_KEY = b"imupipe.provenance"
 MANIFEST_FORMAT = 1
+log = logging.getLogger("imupipe.pipeline")
 OWN_DISTRIBUTION = "imupipe"  # its components are versioned by their own ``version``
 
 
@@ -206,24 +209,67 @@ class Cache:
         return None if entry is None else entry["outputs"]
 
     def entry(self, key: str) -> dict | None:
-        """A complete entry's index (``outputs``: port -> digest, ``warnings``), or None."""
+        """A complete, verified entry's index (``outputs``: port -> digest, ``warnings``), or None.
+
+        Every output file's size and sha256 are checked against those recorded when
+        it was stored; a damaged or incomplete entry is a miss, with a warning (the
+        stage reruns and replaces it).
+        """
         index = self._dir(key) / "outputs.json"
         try:
             entry = json.loads(index.read_text())
             outputs = entry["outputs"]
-        except (FileNotFoundError, json.JSONDecodeError, KeyError, TypeError):
+            files = entry.get("files")
+        except FileNotFoundError:
             return None
-        if not all((self._dir(key) / f"{port}.arrow").is_file() for port in outputs):
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError):
+            log.warning("cache entry %s is damaged (unreadable outputs.json); recomputing it",
+                        self._dir(key))
             return None
+        if not isinstance(files, dict) or set(files) != set(outputs):
+            log.info("cache entry %s records no file digests (older imupipe); recomputing it",
+                     self._dir(key))
+            return None
+        for port in outputs:
+            why = self._damage(key, port, files[port])
+            if why:
+                log.warning("cache entry %s is damaged (%s.arrow: %s); recomputing it",
+                            self._dir(key), port, why)
+                return None
         entry.setdefault("warnings", [])
         return entry
 
-    def load(self, key: str, port: str) -> pa.Table:
-        """An output as the stage returned it (provenance stripped)."""
+    def _damage(self, key: str, port: str, record: dict, data: bytes | None = None) -> str:
+        """Why the stored file of ``port`` does not match its record, or "" when it does."""
         path = self._dir(key) / f"{port}.arrow"
         try:
-            table = read_arrow(path)
-        except (pa.ArrowInvalid, OSError) as exc:
+            if data is None:
+                size = path.stat().st_size
+                if size != record.get("size"):
+                    return f"{size} bytes, {record.get('size')} were stored"
+                data = path.read_bytes()
+        except FileNotFoundError:
+            return "missing"
+        except (OSError, AttributeError) as exc:
+            return f"unreadable: {exc}"
+        if len(data) != record.get("size"):
+            return f"{len(data)} bytes, {record.get('size')} were stored"
+        if hashlib.sha256(data).hexdigest() != record.get("sha256"):
+            return "content does not match its digest"
+        return ""
+
+    def load(self, key: str, port: str) -> pa.Table:
+        """An output as the stage returned it (provenance stripped); its bytes verified first."""
+        path = self._dir(key) / f"{port}.arrow"
+        try:
+            data = path.read_bytes()
+            record = (json.loads((self._dir(key) / "outputs.json").read_text()).get("files") or {})
+            why = self._damage(key, port, record.get(port) or {}, data)
+            if why:
+                raise ImupipeError(f"{path}: cached output is damaged ({why}); rerun to recompute it")
+            with pa.BufferReader(data) as source:
+                table = ipc.open_file(source).read_all()
+        except (pa.ArrowInvalid, OSError, json.JSONDecodeError, AttributeError) as exc:
             raise ImupipeError(
                 f"{path}: cached output is unreadable ({exc}); delete {self._dir(key)} and rerun"
             ) from None
@@ -237,9 +283,14 @@ class Cache:
         stage_key: str,
         warnings: Sequence[str] = (),
     ) -> dict[str, str]:
-        """Write the outputs of one stage run and the warnings it gave; return port -> digest."""
+        """Write the outputs of one stage run and the warnings it gave; return port -> digest.
+
+        ``outputs.json`` (written last, so an entry without it is incomplete) records
+        each file's size and sha256, checked whenever the entry is reused.
+        """
         key = parts.key
         digests = {port: table_digest(table) for port, table in outputs.items()}
+        files = {}
         for port, table in outputs.items():
             provenance = {
                 "stage": stage_key,
@@ -253,11 +304,13 @@ class Cache:
             }
             meta = dict(table.schema.metadata or {})
             meta[PROVENANCE_KEY] = canonical(provenance).encode()
-            write_arrow(self._dir(key) / f"{port}.arrow", table.replace_schema_metadata(meta))
+            data = arrow_bytes(table.replace_schema_metadata(meta))
+            files[port] = {"size": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+            write_bytes(self._dir(key) / f"{port}.arrow", data)
         write_text(
             self._dir(key) / "outputs.json",
             json.dumps(
-                {"key": key, "parts": parts.to_dict(), "outputs": digests,
+                {"key": key, "parts": parts.to_dict(), "outputs": digests, "files": files,
                  "warnings": list(warnings)},
                 indent=1,
             ),
@@ -267,8 +320,6 @@ class Cache:
 
 def provenance(path: Path) -> dict:
     """The provenance a cached Arrow file carries in its schema metadata."""
-    from pyarrow import ipc
-
     with pa.memory_map(str(path), "r") as source:
         meta = ipc.open_file(source).schema.metadata or {}
     return json.loads(meta[PROVENANCE_KEY])

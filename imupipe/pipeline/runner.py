@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import re
 import time
 import warnings
 from collections.abc import Callable
@@ -23,11 +24,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 
+import numpy as np
 import pyarrow as pa
 
 from .. import __version__, schemas
-from ..errors import ImupipeError, SchemaError
-from ..ingest import read_recording, sections_table, stream_facts
+from ..errors import ImupipeError, SchemaError, SolverError
+from ..ingest import check_rate, check_session_path, read_recording, sections_table, stream_facts
 from ..plugins import Registry
 from .cache import (
     Cache,
@@ -135,6 +137,8 @@ class _Source:
         if self._streams is None:
             recording = read_recording(self.path, self.registry, self.pipeline.reader)
             self._streams = dict(recording.device(self.pipeline.device))
+            for name, table in self._streams.items():
+                check_rate(table, name, f"{self.path} [{name}]")
             if recording.meta.get("sections"):  # a manifest's [sections]: session.sections
                 self._streams["sections"] = sections_table(recording.meta["sections"])
             self._names = sorted(self._streams)
@@ -174,9 +178,7 @@ def run_session(
     on_stage: Callable[[str, StageRecord], None] | None = None,
 ) -> SessionRun:
     """Run ``pipeline`` on ``session``; write the run manifest (also when a stage fails)."""
-    session = Path(session)
-    if not session.exists():
-        raise ImupipeError(f"{session}: no such file")
+    session = check_session_path(Path(session))
     if session.is_dir():
         raise ImupipeError(
             f"{session}: is a directory; give a recording file or a session.toml "
@@ -231,12 +233,12 @@ def _run_node(node: Node, run: SessionRun, source: _Source, registry: Registry) 
     cached = run.cache.entry(key)
     if cached is not None:
         _log_warnings(node.key, cached["warnings"])  # said again: the result still has them
-        registry.pm.hook.imupipe_after_stage(stage=node.key, key=key, cached=True, seconds=0.0)
+        _observe(registry, "imupipe_after_stage", stage=node.key, key=key, cached=True, seconds=0.0)
         return StageRecord(
             "cached", key, parts.to_dict(), cached["outputs"], warnings=cached["warnings"]
         )
 
-    registry.pm.hook.imupipe_before_stage(stage=node.key, key=key)
+    _observe(registry, "imupipe_before_stage", stage=node.key, key=key)
     where = f"{source.path}: stage {node.key!r} ({node.stage.name})"
     inputs = {}
     for port in digests:
@@ -250,15 +252,51 @@ def _run_node(node: Node, run: SessionRun, source: _Source, registry: Registry) 
         try:
             outputs = node.stage.func(MappingProxyType(inputs), node.params, node.solver)
         except ImupipeError as exc:
-            raise _prefixed(exc, where) from exc
+            raise _prefixed(exc, where + _missing_imu(run.pipeline, source)) from exc
+        except NUMERICAL_ERRORS as exc:  # the data cannot determine what the stage solves for
+            raise SolverError(
+                f"{where}: the data cannot determine this stage's result ({type(exc).__name__}: "
+                f"{exc}); check for dead, saturated or constant axes and the units of the data"
+            ) from exc
         finally:
-            said = list(dict.fromkeys(str(w.message) for w in caught))
+            # numpy's floating-point warnings (divide by zero, ...) are symptoms, not news: the
+            # stage's own checks or the error that follows say what is wrong; kept at debug level
+            for w in caught:
+                if _is_numpy_fp_warning(w):
+                    log.debug("%s: %s", node.key, w.message)
+            said = list(dict.fromkeys(str(w.message) for w in caught
+                                      if not _is_numpy_fp_warning(w)))
             _log_warnings(node.key, said)
     seconds = time.perf_counter() - t0
     _check_outputs(node, outputs, where)
     stored = run.cache.store(parts, {p: outputs[p] for p in node.stage.outputs}, node.key, said)
-    registry.pm.hook.imupipe_after_stage(stage=node.key, key=key, cached=False, seconds=seconds)
+    _observe(registry, "imupipe_after_stage", stage=node.key, key=key, cached=False,
+             seconds=seconds)
     return StageRecord("ran", key, parts.to_dict(), stored, seconds=seconds, warnings=said)
+
+
+NUMERICAL_ERRORS = (np.linalg.LinAlgError, FloatingPointError, OverflowError, ZeroDivisionError)
+_NUMPY_FP = re.compile(r"(invalid value|divide by zero|overflow|underflow) encountered|"
+                       r"Mean of empty slice|Degrees of freedom <= 0|All-NaN")
+
+
+def _is_numpy_fp_warning(w: warnings.WarningMessage) -> bool:
+    return issubclass(w.category, RuntimeWarning) and bool(_NUMPY_FP.search(str(w.message)))
+
+
+def _observe(registry: Registry, hook: str, **kwargs) -> None:
+    """Call a lifecycle hook (they observe, never change data) of every plugin; one that
+    raises is that plugin's failure: said once, the plugin listed broken, the run goes on."""
+    for impl in reversed(getattr(registry.pm.hook, hook).get_hookimpls()):
+        name = registry.pm.get_name(impl.plugin) or repr(impl.plugin)
+        if name in registry.broken:
+            continue
+        try:
+            impl.function(**{a: kwargs[a] for a in impl.argnames if a in kwargs})
+        except Exception as exc:  # noqa: BLE001 - a plugin's observer must not stop the run
+            registry.broken[name] = ("", "", f"{hook} raised {type(exc).__name__}: {exc}")
+            log.warning("plugin %r: %s raised %s: %s; its lifecycle hooks are ignored from now on",
+                        name, hook, type(exc).__name__, exc)
 
 
 def _log_warnings(stage: str, messages: list[str]) -> None:
@@ -293,6 +331,18 @@ def _check_outputs(node: Node, outputs: object, where: str) -> None:
         )
     for port, schema_id in node.stage.outputs.items():
         schemas.check(outputs[port], schema_id, f"{where} output {port!r}")
+
+
+def _missing_imu(pipeline: Pipeline, source: _Source) -> str:
+    """`` (the session has no accel/gyro stream ...)`` when the pipeline reads one that is
+    missing: the likely cause of a stage's failure (an MCAP without its Imu topic)."""
+    used = {ref.port for node in pipeline.nodes.values() for ref in node.inputs.values()
+            if ref.is_session}
+    missing = [s for s in ("accel", "gyro") if s in used and s not in source.names()]
+    if not missing:
+        return ""
+    return (f" (the session has no {' or '.join(missing)} stream: for ROS/MCAP, no "
+            f"sensor_msgs/Imu topic; it has {', '.join(source.names()) or 'none'})")
 
 
 def _prefixed(exc: ImupipeError, where: str) -> ImupipeError:

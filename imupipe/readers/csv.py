@@ -38,11 +38,16 @@ ColumnRef = str | int  # a header name, or a 0-based column index
 
 
 def first_line(path: Path, skip_lines: int = 0, limit: int = 1 << 16) -> str:
-    """The first line after ``skip_lines`` lines (at most ``limit`` bytes), without its newline."""
+    """The first line after ``skip_lines`` lines (at most ``limit`` bytes), without its newline
+    (and without a UTF-8 byte-order mark at the start of the file)."""
     with open(path, "rb") as f:
         for _ in range(skip_lines):
-            f.readline(limit)
-        return f.readline(limit).decode("utf-8", errors="replace").rstrip("\r\n")
+            if not f.readline(limit):
+                break
+        line = f.readline(limit)
+        if skip_lines == 0:
+            line = line.removeprefix(b"\xef\xbb\xbf")  # a UTF-8 byte-order mark
+        return line.decode("utf-8", errors="replace").rstrip("\r\n")
 
 
 def split_fields(line: str, delimiter: str) -> list[str]:
@@ -130,9 +135,26 @@ def _typed_frame(source: Path | io.BytesIO, sep: str, header: bool, skip_lines: 
     finally:
         if isinstance(source, io.BytesIO):
             source.seek(0)
+    frame = _drop_trailing_blank(frame)
     if any(frame.to_series(i).null_count() for i in dtypes if i < frame.width):
         return None
     return frame
+
+
+def _drop_trailing_blank(frame: pl.DataFrame) -> pl.DataFrame:
+    """Without the rows of blank lines at the end of the file (all fields empty)."""
+    import polars as pl
+
+    if frame.height == 0 or frame.width == 0:
+        return frame
+    empty = pl.all_horizontal(
+        [pl.col(c).is_null() | (pl.col(c).cast(pl.String).str.strip_chars() == "")
+         for c in frame.columns])
+    blank = frame.select(empty.alias("blank")).to_series().to_numpy()
+    keep = len(blank)
+    while keep and blank[keep - 1]:
+        keep -= 1
+    return frame.head(keep)
 
 
 def _text_frame(path: Path, source: Path | io.BytesIO, sep: str, header: bool, skip_lines: int,
@@ -142,8 +164,9 @@ def _text_frame(path: Path, source: Path | io.BytesIO, sep: str, header: bool, s
 
     try:
         # All columns, not a projection: polars checks row widths only of what it parses.
-        return pl.read_csv(source, separator=sep, has_header=header, skip_rows=skip_lines,
-                           infer_schema=False, quote_char='"')
+        return _drop_trailing_blank(pl.read_csv(
+            source, separator=sep, has_header=header, skip_rows=skip_lines, infer_schema=False,
+            quote_char='"'))
     except pl.exceptions.NoDataError:
         raise ReaderError(f"{path}: has no data rows") from None
     except (pl.exceptions.PolarsError, OSError) as exc:

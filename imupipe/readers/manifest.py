@@ -15,6 +15,7 @@ import os
 import re
 import tomllib
 import warnings
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Any, Literal
 
@@ -72,7 +73,7 @@ class StreamSpec(_Model):
     source_device: str | None = None  # with reader: which of its devices (default: the only one)
     format: Literal["csv", "matlab"] | None = None  # default: by suffix
     delimiter: str = ","  # one character, or "whitespace"
-    skip_lines: int = Field(0, ge=0)  # lines before the header (or the data, without header)
+    skip_lines: int = Field(0, ge=0, le=1_000_000)  # lines before the header (or the data, without header)
     header: bool = True
     variable: str | None = None  # matlab: dataset name (default: the file's only one)
     columns: dict[str, ColumnRef] = {}  # t, x, y, z (or t, temperature) -> name / 0-based index
@@ -152,6 +153,8 @@ def load_manifest(path: Path) -> Manifest:
         doc = tomllib.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: cannot read the manifest ({exc})") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: not valid TOML (arrays or tables nested too deeply)") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
     try:
@@ -160,8 +163,30 @@ def load_manifest(path: Path) -> Manifest:
         raise ConfigError(f"{path}: {describe_validation(exc, Manifest)}") from None
 
 
+_READING: ContextVar[tuple[str, ...]] = ContextVar("imupipe_manifests_reading", default=())
+MAX_NESTING = 4  # a manifest's stream read through a reader that reads a manifest ...
+
+
 def read_manifest(path: Path) -> Recording:
-    """Read every stream a manifest names into one ``Recording``."""
+    """Read every stream a manifest names into one ``Recording``.
+
+    A manifest that names itself (or a manifest naming it back) through
+    ``reader = "session"`` is an error, not an endless recursion.
+    """
+    key = os.path.realpath(path)
+    reading = _READING.get()
+    if key in reading or len(reading) >= MAX_NESTING:
+        chain = " -> ".join([*reading, key])
+        raise ConfigError(f"{path}: the manifest refers to itself ({chain}); "
+                          "name the data files, not a manifest, in streams[].file")
+    token = _READING.set((*reading, key))
+    try:
+        return _read_manifest(path)
+    finally:
+        _READING.reset(token)
+
+
+def _read_manifest(path: Path) -> Recording:
     manifest = load_manifest(path)
     devices: dict[str, dict[str, pa.Table]] = {}
     for i, spec in enumerate(manifest.streams):
@@ -209,6 +234,8 @@ def _parse(spec: StreamSpec, path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
                           "give format = \"csv\" or \"matlab\" in the manifest")
     refs = spec.column_refs()
     if fmt == "csv":
+        if spec.stream == "temperature" and not spec.columns:
+            _check_positional_temperature(spec, path, len(refs))
         int_keys = ("t",) if spec.time_unit == "ns" else ()
         data = read_columns(path, refs, delimiter=spec.delimiter, skip_lines=spec.skip_lines,
                             header=spec.header, int_keys=int_keys)
@@ -230,6 +257,20 @@ def _parse(spec: StreamSpec, path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
     else:
         t_ns = np.round(np.arange(n) * (1e9 / spec.rate_hz)).astype(np.int64)
     return t_ns, [data[a] for a in spec.axes()]
+
+
+def _check_positional_temperature(spec: StreamSpec, path: Path, used: int) -> None:
+    """A file of more columns than [t,] temperature is not a temperature stream by position.
+
+    (A triad's file offered as temperature would otherwise give its x axis as degrees.)
+    """
+    from .csv import first_line, split_fields
+
+    width = len(split_fields(first_line(path, spec.skip_lines), spec.delimiter))
+    if width > used:
+        raise ReaderError(
+            f"{path}: offered as a temperature stream but it has {width} columns (a temperature "
+            f"file has {used}); name them with columns = {{ t = ..., temperature = ... }}")
 
 
 def _to_ns(t: np.ndarray, per: float, spec: StreamSpec, ref: ColumnRef, path: Path
@@ -321,6 +362,9 @@ def resolve_sections(sections: Sections, devices: dict[str, dict[str, pa.Table]]
     raw.update(sections.items)
     out = {}
     for name, (a, b) in raw.items():
+        if not (np.isfinite(a) and np.isfinite(b)):
+            raise ConfigError(f"{path}: sections: {name!r} = [{a}, {b}] is not a pair of finite "
+                              f"numbers; give its start and end in {sections.unit}")
         if sections.unit == "s":
             a, b = (int(np.searchsorted(t, t[0] + x * 1e9)) for x in (a, b))
         start, end = int(a), int(b)

@@ -53,7 +53,11 @@ def read_buffer(path: Path, variable: str | None = None) -> np.ndarray:
         if data.ndim != 2 or data.dtype.kind not in "fiu":
             raise ReaderError(f"{path}: variable {variable!r} is not a numeric matrix "
                               f"(shape {data.shape}, type {data.dtype})")
-        return np.asarray(data, dtype=np.float64).T
+        try:
+            return np.asarray(data, dtype=np.float64).T
+        except (OSError, ValueError, RuntimeError) as exc:  # a corrupt or truncated data block
+            raise ReaderError(f"{path}: variable {variable!r} cannot be read ({exc}); the file "
+                              "is damaged: save or copy it again") from None
 
 
 def _open(path: Path, h5py):

@@ -368,6 +368,7 @@ def _message_offsets(raw: memoryview, at: int, channel: int, where: str) -> np.n
 
 def _read_generic(f, pieces: Pieces, other: set[str]) -> None:
     """Decode message by message with ``mcap_ros2`` (extra ``ros``), in file order."""
+    where = getattr(f, "name", "the MCAP file")
     decoder_module = require("mcap_ros2.decoder", "ros")
     factory = decoder_module.DecoderFactory()
     f.seek(0)
@@ -383,12 +384,21 @@ def _read_generic(f, pieces: Pieces, other: set[str]) -> None:
         if decode is None:
             decode = decoders[channel.id] = factory.decoder_for(channel.message_encoding, schema)
             if decode is None:
-                raise ValueError(f"topic {channel.topic} is not ROS 2 CDR; imupipe reads ROS 2")
-        msg = decode(message.data)
+                raise ReaderError(f"{where}: topic {channel.topic} is not ROS 2 CDR; imupipe "
+                                  "reads ROS 2")
+        try:
+            msg = decode(message.data)
+            stamp = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+            block = _block_of(kind, msg)
+        except Exception as exc:  # noqa: BLE001 - any decoding failure is the file's
+            raise ReaderError(
+                f"{where}: topic {channel.topic}: a message does not decode as its schema "
+                f"{schema.name!r} ({type(exc).__name__}: {exc}); the schema name or its "
+                "definition is wrong (a swapped schema?)") from None
         stamps, logs, blocks = rows[channel.topic, kind]
-        stamps.append((msg.header.stamp.sec, msg.header.stamp.nanosec))
+        stamps.append(stamp)
         logs.append(message.log_time)
-        blocks.append(_block_of(kind, msg))
+        blocks.append(block)
     for (topic, kind), (stamps, logs, blocks) in rows.items():
         sec, nanosec = np.array(stamps, np.int64).reshape(-1, 2).T
         t = sec * 1_000_000_000 + nanosec

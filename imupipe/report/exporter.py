@@ -23,6 +23,7 @@ import pyarrow as pa
 from .. import schemas
 from ..errors import require
 from ..io import atomic_path, write_text
+from ..paths import safe_name, under
 from . import noise_figures, residual_figures, segment_figures
 
 
@@ -151,7 +152,7 @@ class ReportExporter:
                 draw(ax)
                 ax.set_title(title)
                 ax.grid(alpha=0.3)
-            path = figs / f"{name}.png"
+            path = under(figs, f"{safe_name(name, 'figure')}.png")
             _save(fig, path)
             plt.close(fig)
             written.append(path)

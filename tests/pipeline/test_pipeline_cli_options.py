@@ -121,7 +121,9 @@ def test_device_option_picks_one_imu(tmp_path, toy_registry, toy_pipeline, monke
     doc = json.loads((out / "pair" / "calibration.json").read_text())
     np.testing.assert_allclose(doc["gyro"]["b0"], 0.3, atol=0.01)  # the right IMU's bias
     assert cli.main([*args, "--device", "middle"]) == 2
-    assert not (out / "pair" / "calibration.json").exists()
+    # a failed run keeps the previous result (issue 12); run.json says the last run failed
+    assert json.loads((out / "pair" / "calibration.json").read_text()) == doc
+    assert "no device 'middle'" in json.loads((out / "pair" / "run.json").read_text())["error"]
     run_sessions([mcap], toy_pipeline, out, quiet=True, registry=registry,
                  overrides=['input.device="left"'])
     doc = json.loads((out / "pair" / "calibration.json").read_text())

@@ -129,3 +129,52 @@ def test_imupipe_plugins_lists_name_distribution_version_and_provides(monkeypatc
         and "stage:toy_scale" in lines[k + 1]
         and "solver:toy_mean" in lines[k + 1]
     )
+
+
+class _FakeDist:
+    """An installed distribution as ``importlib.metadata`` shows it, with imupipe entry points."""
+
+    def __init__(self, name, entry_points):
+        from importlib import metadata
+
+        self.metadata = {"name": name}
+        self.version = "9.9"
+        self.entry_points = [metadata.EntryPoint(n, v, "imupipe") for n, v in entry_points]
+
+
+def _with_fake_dists(monkeypatch, *fakes):
+    from importlib import metadata
+
+    real = list(metadata.distributions())
+    monkeypatch.setattr(metadata, "distributions", lambda: [*fakes, *real])
+
+
+def test_plugin_failing_at_import_is_listed_broken_and_the_rest_works(monkeypatch, capsys):
+    _with_fake_dists(monkeypatch, _FakeDist("evil-imu", [("evil", "no_such_module_xyz")]),
+                     _FakeDist("usurper", [("builtin_readers", "pipeline_toys")]))
+    registry = make_registry()
+    assert "csv" in registry.names("readers")  # the built-ins still work ...
+    assert registry.get("readers", "csv").__module__.startswith("imupipe.")  # ... not replaced
+    assert "arrowsession" not in registry.names("readers")  # the usurper's reader is not in
+    assert "failed to import: ModuleNotFoundError" in registry.broken["evil"][2]
+    assert "already imupipe's" in registry.broken["builtin_readers (usurper)"][2]
+    assert cli.main(["plugins"]) == 0
+    out = capsys.readouterr().out
+    assert "evil  (evil-imu 9.9)  BROKEN" in out and "builtin_readers (usurper)" in out
+    assert "reader:csv" in out
+
+
+class _RaisingHook:
+    @hookimpl
+    def imupipe_register_readers(self, register):
+        register(_Reader("half_registered"))
+        raise RuntimeError("vendor SDK missing")
+
+
+def test_plugin_raising_in_its_hook_is_left_out(caplog):
+    registry = make_registry([_RaisingHook(), pipeline_toys], entry_points_too=False)
+    assert "arrowsession" in registry.names("readers")
+    assert "half_registered" not in registry.names("readers")
+    ((_, (_, _, why)),) = registry.broken.items()
+    assert "imupipe_register_readers raised RuntimeError: vendor SDK missing" in why
+    assert "is broken and left out" in caplog.text

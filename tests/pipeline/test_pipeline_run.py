@@ -18,6 +18,7 @@ from imupipe.io import read_arrow
 from imupipe.models import Calibration
 from imupipe.pipeline import api
 from imupipe.pipeline.api import run_sessions, session_ids
+from imupipe.pipeline.cache import read_manifest
 
 # toy truth: bias 0.1 (mag 1e-7 T) on every axis, noise 0.01 over 200 samples
 BIAS_TOL = 0.01 * 4 / np.sqrt(200)
@@ -105,7 +106,7 @@ class FigureReport:
         register(self)
 
 
-def test_failing_session_leaves_no_calibration_and_others_still_run(
+def test_failing_session_keeps_the_previous_result_and_others_still_run(
     tmp_path, toy_registry, toy_pipeline, session
 ):
     registry, _ = toy_registry(FigureReport())
@@ -114,7 +115,7 @@ def test_failing_session_leaves_no_calibration_and_others_still_run(
     bad = tmp_path / "data" / "bad.arrowsession"
     bad.write_bytes(b"not arrow at all")
     (out / "bad" / "figures").mkdir(parents=True)
-    (out / "bad" / "calibration.json").write_text("{}")  # stale results of an earlier run
+    (out / "bad" / "calibration.json").write_text("{}")  # results of an earlier run
     (out / "bad" / "report.md").write_text("# old report")
     (out / "bad" / "figures" / "old.png").write_bytes(b"png")
     (out / "bad" / "notes.txt").write_text("the user's own file")
@@ -123,11 +124,13 @@ def test_failing_session_leaves_no_calibration_and_others_still_run(
         match=r"bad.arrowsession: not an Arrow IPC session .*\(1 of 2 sessions failed\)",
     ):
         run_sessions([bad, session], toy_pipeline, out, quiet=True, registry=registry)
-    assert not (out / "bad" / "calibration.json").exists()
-    assert not (out / "bad" / "report.md").exists()
-    assert not (out / "bad" / "figures").exists()
-    assert (out / "bad" / "notes.txt").is_file()  # only what the exporters write goes
-    assert (out / "bad" / "run.json").is_file()
+    # a failed run removes only what it wrote itself: the earlier result stays as it was
+    assert (out / "bad" / "calibration.json").read_text() == "{}"
+    assert (out / "bad" / "report.md").read_text() == "# old report"
+    assert (out / "bad" / "figures" / "old.png").is_file()
+    assert (out / "bad" / "notes.txt").is_file()
+    assert read_manifest(out / "bad" / "run.json")["error"]  # status tells the run failed
+    assert not [p for p in (out / "bad").iterdir() if p.name.startswith(".")]
     assert (out / "s1" / "calibration.json").is_file()
     assert (out / "s1" / "figures" / "fit.png").is_file()
     assert not list(out.rglob("*.part"))
@@ -175,7 +178,9 @@ def test_report_exporter_is_called_when_registered(tmp_path, toy_registry, sessi
     ((results, context, out_dir),) = plugin.exporter.calls
     assert list(results) == ["scaled.samples", "gyro.calibration"]
     assert results["scaled.samples"].num_rows == 200
-    assert context["pipeline"] == "toy" and out_dir == tmp_path / "out" / "s1"
+    # exporters write into a staging folder that is moved into place when all have succeeded
+    assert context["pipeline"] == "toy" and out_dir.parent == tmp_path / "out" / "s1"
+    assert out_dir.name.startswith(".part-") and not out_dir.exists()
 
     registry, _ = toy_registry()  # no report exporter: reports are skipped, the run succeeds
     run_sessions([session], pipeline, tmp_path / "out2", quiet=True, registry=registry)

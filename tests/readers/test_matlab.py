@@ -104,3 +104,16 @@ def test_missing_h5py_names_the_extra(full_sphere, monkeypatch):
     monkeypatch.setitem(sys.modules, "h5py", None)  # import now fails
     with pytest.raises(MissingExtraError, match=r"imupipe\[matlab\]"):
         MatlabReader().read(full_sphere / "mpu6050_gyroscope.mat")
+
+
+def test_a_corrupt_data_block_is_named(tmp_path):
+    path = tmp_path / "hbad.mat"
+    buf = np.column_stack([np.arange(3000) * 0.01, 9.81 + np.zeros((3000, 3))]).T
+    with h5py.File(path, "w", userblock_size=512) as f:
+        f.create_dataset("acc", data=buf, compression="gzip", chunks=(4, 500))
+    data = bytearray(path.read_bytes())
+    middle = len(data) // 2
+    data[middle:middle + 400] = bytes(b ^ 0xA5 for b in data[middle:middle + 400])
+    path.write_bytes(bytes(data))
+    with pytest.raises(ReaderError, match=r"hbad.mat: variable 'acc' cannot be read .* damaged"):
+        read_buffer(path, "acc")

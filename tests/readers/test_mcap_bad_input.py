@@ -135,3 +135,15 @@ def test_nan_in_a_message(tmp_path, capsys):
     write_mcap(path, _recording(t, x))
     line = ingest_fails(path, tmp_path, capsys)
     assert "non-finite value nan in column 'x' at sample 30" in line
+
+
+def test_swapped_schema_names_are_one_line(tmp_path, mcap_kit, capsys, monkeypatch):
+    from imupipe.readers import cdr
+
+    swapped = dict(cdr.KIND_SCHEMA)
+    swapped["imu"], swapped["mag"] = cdr.KIND_SCHEMA["mag"], cdr.KIND_SCHEMA["imu"]
+    monkeypatch.setattr(cdr, "KIND_SCHEMA", swapped)  # the writer names each schema wrongly
+    path = good_file(tmp_path, mcap_kit, "swapped.mcap")
+    monkeypatch.undo()
+    line = ingest_fails(path, tmp_path, capsys)
+    assert "does not decode as its schema" in line and "swapped schema" in line
