@@ -4,6 +4,7 @@
 significant ones with their fitted parameters, held-out RMS before and after and an
 explanation; a cell of the residual map that stays flagged and that no accepted term's
 sensor and regime covers becomes an ``unknown`` finding that says what it correlates with.
+A significant term whose held-out RMS does not improve is not a finding (``not_confirmed``).
 """
 
 from __future__ import annotations
@@ -21,9 +22,16 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
     lin = ev.lin
     tested = [examine(lin, c) for c in candidates(lin, ev.frame, effects)]
     rp, accepted = select(lin, tested, q)
-    findings = []
+    findings, not_confirmed = [], []
     for i, f in enumerate(accepted):
-        findings.append(_finding(lin, rp, f, accepted[:i] + accepted[i + 1:], effects))
+        doc = _finding(lin, rp, f, accepted[:i] + accepted[i + 1:], effects)
+        if doc["heldout_rms_after"] < doc["heldout_rms_before"]:
+            findings.append(doc)
+        else:  # significant on the data it was fitted to, no better on data it was not: not stood behind
+            not_confirmed.append({"effect": doc["effect"], "sensor": doc["sensor"], "regime": doc["regime"],
+                                  "parameters": doc["parameters"], "significance": doc["significance"],
+                                  "reason": f"held-out RMS did not improve ({doc['heldout_rms_before']:.4g} -> "
+                                            f"{doc['heldout_rms_after']:.4g})"})
     covered = {(f["sensor"], f["regime"]) for f in findings}
     for cell in (map_doc or {}).get("cells", []):
         if not cell.get("flagged"):
@@ -58,7 +66,7 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
     untested += [{"effect": e, "reason": "this recording has no rows its term acts on"}
                  for e in ("lever_arm", "accel_gyro_time_offset") if e in effects and e not in present]
     return {"session": session, "findings": findings, "not_identifiable": not_identifiable,
-            "tested": tested_doc, "untested": untested, "fdr_q": q,
+            "not_confirmed": not_confirmed, "tested": tested_doc, "untested": untested, "fdr_q": q,
             "method": "score tests against the fitted per-sample model (chi-square, asymptotic), "
                       "Benjamini-Hochberg forward selection with a backward check, 5-fold blocked "
                       "cross-validation by rest and motion"}

@@ -144,7 +144,7 @@ def diagnose_session(inputs: Mapping[str, pa.Table], params: MapParams, solver: 
 
 DIAGNOSE = Stage(
     name="diagnose",
-    version="10",
+    version="11",
     func=diagnose_session,
     inputs=STAGE.inputs,
     outputs={"samples": "sample_residuals", "map": "residual_map", "diagnosis": "diagnosis"},
