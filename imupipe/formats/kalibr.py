@@ -84,7 +84,7 @@ def raw_noise(source: Source, sensor: str, notes: Notes) -> tuple[np.ndarray | N
     walk = None
     if "bias_random_walk" in noise:
         walk = np.asarray(noise["bias_random_walk"], float)
-        notes.say(f"{sensor}: random walk = the joint fit's gyro bias random walk (continuous)")
+        notes.say(f"{sensor}: random walk = the joint fit's {sensor} bias random walk (continuous)")
     return density, walk
 
 
