@@ -232,7 +232,7 @@ class Attitude:
         ok = (pts.h >= 0)[:, None, None]
         before = np.where(ok, cum[hh] - per[hh], 0.0)
         part = self.R_before[hh] @ left_jacobian(pts.W @ self.omega)
-        part = np.einsum("kij,kjp->kip", part, (pts.W @ D.reshape(len(D), 3 * P)).reshape(k, 3, P))
+        part = part @ (pts.W @ D.reshape(len(D), 3 * P)).reshape(k, 3, P)
         return before + np.where(ok, part, 0.0)
 
     def end_sensitivity(self, D: np.ndarray) -> np.ndarray:

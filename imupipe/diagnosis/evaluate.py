@@ -191,7 +191,7 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
     # a first, short fit of the nuisances puts the attitude right (the gyro's calibration error,
     # integrated over a 20 s turntable turn, would pass for metres of travel), then the carries
     # are found and the final fit starts from it
-    first = fit(model, max_iter=SCREEN_ITER, fixed_globals=True, tol=FIT_TOL)
+    first = fit(model, max_iter=SCREEN_ITER, fixed_globals=True, tol=FIT_TOL, leverage=False)
     moved = displacement(model, first.x_g, first.x_l)
     carried = moved > TRANSLATION_M
     for j in np.flatnonzero(carried):

@@ -79,7 +79,7 @@ def _normalise(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit vectors (n, 3) and their derivative (n, 3, 3) w.r.t. ``v``: ``(I - u u^T) / |v|``."""
     nv = np.linalg.norm(v, axis=1)
     u = v / nv[:, None]
-    return u, (np.eye(3) - np.einsum("ni,nj->nij", u, u)) / nv[:, None, None]
+    return u, (np.eye(3) - u[:, :, None] * u[:, None, :]) / nv[:, None, None]
 
 
 # --------------------------------------------------------------------------- inputs
@@ -413,7 +413,7 @@ class JointModel:
                 Phi += qg * T**3 / 12.0 / K * (P["M_g"] @ P["M_g"].T)
             p = self.p[j]
             X = skew(self.u0[p]) @ self.B[p]  # tilt of gravity per unit rotation, in-plane
-            Q = np.einsum("ai,kij,jb->kab", X.T, Phi, X) + 1e-30 * np.eye(2)
+            Q = X.T @ Phi @ X + 1e-30 * np.eye(2)
             # in gnomonic coordinates at u0_p, d z = B^T (phi x u0) = -(X^T phi) up to sign
             out.append(_whiteners(Q))
         return out
@@ -680,10 +680,11 @@ class JointModel:
 
         z = (1 - mu)[:, None] * knot_value(kidx) + mu[:, None] * knot_value(kidx + 1)
         u0p, Bp = self.u0[p], self.B[p]
-        nvec, dn = _normalise(u0p + np.einsum("kia,ka->ki", Bp, z))
-        ub = np.einsum("kji,kj->ki", R, nvec)  # gravity in the body at the sample
-        Uz = np.einsum("kji,kjl,kla->kia", R, dn, Bp)  # d ub / d z  (k, 3, 2)
-        Uphi = np.einsum("kji,kjl->kil", R, skew(nvec))  # d ub / d phi (k, 3, 3)
+        nvec, dn = _normalise(u0p + (Bp @ z[:, :, None])[:, :, 0])
+        Rt = np.swapaxes(R, 1, 2)  # (stacked matmul: far faster than einsum here)
+        ub = (Rt @ nvec[:, :, None])[:, :, 0]  # gravity in the body at the sample
+        Uz = Rt @ dn @ Bp  # d ub / d z  (k, 3, 2)
+        Uphi = Rt @ skew(nvec)  # d ub / d phi (k, 3, 3)
         lam = self.lam_acc[:, None]
         waa, wab = self.walk_states(x_l, "wa")
         walk = (1 - lam) * wab[p] + lam * waa[q]
@@ -692,12 +693,13 @@ class JointModel:
         r = (acc.y - pred) @ self.W_sample.T
         WS = -g * self.W_sample @ S_a  # d r / d ub
         Jg = np.zeros((k, 3, Pg))
-        Jg[:, :, gl["S_a"]] = -np.einsum("ij,ljm,km->kil", self.W_sample, _LOWER, f)
+        WL = np.einsum("ij,ljm->ilm", self.W_sample, _LOWER)  # (3, 6, 3)
+        Jg[:, :, gl["S_a"]] = -(f @ WL.reshape(-1, 3).T).reshape(k, 3, -1)
         Jg[:, :, gl["b_a"]] = -self.W_sample
         if self.fit_k:
             Jg[:, :, gl["k_a"]] = -self.W_sample * self.dT_acc[:, None, None]
-        dr_dz = np.einsum("ij,kja->kia", WS, Uz)  # (k, 3, 2)
-        dr_gyro = np.einsum("ij,kjl,klp->kip", WS, Uphi, Phi)  # (k, 3, 21)
+        dr_dz = WS @ Uz  # (k, 3, 2)
+        dr_gyro = (WS @ Uphi) @ Phi  # (k, 3, 21)
         at_end = kidx + 1 == Kj
         dr_gyro[at_end] += mu[at_end, None, None] * np.einsum("kia,kap->kip", dr_dz[at_end], dz_gyro[j[at_end]])
         gsel = cols_g >= 0

@@ -81,9 +81,11 @@ class Linearised:
 
 
 def fit(model: JointModel, max_iter: int = 30, x_g: np.ndarray | None = None,
-        x_l: np.ndarray | None = None, fixed_globals: bool = False, tol: float = 1e-10) -> Linearised:
+        x_l: np.ndarray | None = None, fixed_globals: bool = False, tol: float = 1e-10,
+        leverage: bool = True) -> Linearised:
     """Fit ``model`` from its start (or ``x_g``/``x_l``); ``fixed_globals``: only the nuisances
-    move (the model's prediction of a given calibration), the leverage still counts the globals."""
+    move (the model's prediction of a given calibration), the leverage still counts the globals;
+    ``leverage=False`` skips the rows' leverages (a fit only its solution is wanted from)."""
     x_g = model.x_g0.copy() if x_g is None else np.asarray(x_g, float)
     x_l = model.x_l0.copy() if x_l is None else np.asarray(x_l, float)
     offsets = model.stages.offsets
@@ -100,5 +102,5 @@ def fit(model: JointModel, max_iter: int = 30, x_g: np.ndarray | None = None,
                                                             max_iter=max_iter, tol=tol)
     system = Bordered(J_g, J_l, offsets)
     lin = Linearised(model, x_g, x_l, r, J_g, J_l, it, ok, system)
-    lin.leverage = system.leverage()
+    lin.leverage = system.leverage() if leverage else None
     return lin
