@@ -217,7 +217,17 @@ class Attitude:
         """(S, 3, P) each step's attitude change per unit parameter change, start frame."""
         P = D.shape[2]
         C = self.R_before @ left_jacobian(self.a)
-        return np.einsum("hij,hjp->hip", C, (self.quad.A @ D.reshape(len(D), 3 * P)).reshape(-1, 3, P))
+        return C @ (self.quad.A @ D.reshape(len(D), 3 * P)).reshape(-1, 3, P)
+
+    def _steps_and_sums(self, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``_per_step(D)`` and its running sums within each motion, kept for the last ``D``
+        (the end-points and the samples of one residual evaluation share them)."""
+        memo = self.__dict__.get("_memo")
+        if memo is None or memo[0] is not D:
+            per = self._per_step(D)
+            memo = (D, per, segmented_cumsum(per, self.quad.seg))
+            object.__setattr__(self, "_memo", memo)
+        return memo[1], memo[2]
 
     def sensitivity(self, D: np.ndarray, pts: Points) -> np.ndarray:
         """(k, 3, P) start-frame attitude change per unit change of parameters at the instants
@@ -226,8 +236,7 @@ class Attitude:
         k = len(pts.h)
         if not k or not len(self.a):
             return np.zeros((k, 3, P))
-        per = self._per_step(D)
-        cum = segmented_cumsum(per, self.quad.seg)
+        per, cum = self._steps_and_sums(D)
         hh = np.maximum(pts.h, 0)
         ok = (pts.h >= 0)[:, None, None]
         before = np.where(ok, cum[hh] - per[hh], 0.0)
@@ -239,6 +248,5 @@ class Attitude:
         """(m, 3, P) the same at each motion's last sample (zeros for motions without steps)."""
         out = np.zeros((self.quad.samples.count, 3, D.shape[2]))
         if len(self.a):
-            cum = segmented_cumsum(self._per_step(D), self.quad.seg)
-            out[self.quad.seg[self.quad.last]] = cum[self.quad.last]
+            out[self.quad.seg[self.quad.last]] = self._steps_and_sums(D)[1][self.quad.last]
         return out
