@@ -26,17 +26,22 @@ CONTEXT_KEYS = ("session", "pipeline", "imupipe_version")
 
 
 class CalibrationJson:
-    """``out_dir/calibration.json``: the calibration tables merged, later tables win per sensor."""
+    """``out_dir/calibration.json``: the calibration tables merged, later tables win per sensor;
+    with a ``diagnosis`` table among them, its accepted terms as ``model_terms``."""
 
     name = "calibration_json"
-    version = "1"  # bump when the file changes for the same tables (keys the export cache)
+    version = "2"  # bump when the file changes for the same tables (keys the export cache)
     filename = "calibration.json"
     writes = (filename,)
 
     def export(
         self, results: Mapping[str, pa.Table], context: Mapping[str, Any], out_dir: Path
     ) -> list[Path]:
-        if not results:
+        from . import schemas
+
+        diagnoses = [t for t in results.values() if schemas.schema_of(t) == "diagnosis"]
+        tables = [t for t in results.values() if schemas.schema_of(t) != "diagnosis"]
+        if not tables:
             raise SolverError(
                 f"{context.get('session', '?')}: no calibration table to export "
                 "(every calibrate stage was skipped); check the session's streams"
@@ -44,7 +49,7 @@ class CalibrationJson:
         meta = {k: context[k] for k in CONTEXT_KEYS if k in context}
         if context.get("skipped"):
             meta["skipped_stages"] = dict(context["skipped"])
-        calibration = Calibration.from_tables(*results.values(), meta=meta)
+        calibration = Calibration.from_tables(*tables, meta=meta)
         if not calibration.triads:
             raise SolverError(
                 f"{context.get('session', '?')}: the calibration tables hold no triad"
@@ -52,6 +57,10 @@ class CalibrationJson:
         doc = with_raw_units(calibration.to_dict(), context.get("raw_units") or {})
         if context.get("verdict") is not None:  # spec/contracts.md; imupipe.verdict
             doc["verdict"] = dict(context["verdict"])
+        for table in diagnoses:  # imupipe diagnose: the accepted extra terms (effects.md names)
+            findings = json.loads(table.schema.metadata[b"imupipe.diagnosis"])["findings"]
+            doc["model_terms"] = [{"effect": f["effect"], "sensor": f["sensor"], "parameters": f["parameters"]}
+                                  for f in findings if f["effect"] != "unknown"]
         path = Path(out_dir) / self.filename
         write_text(path, json.dumps(doc, indent=2) + "\n")
         return [path]
@@ -77,6 +86,21 @@ def with_raw_units(doc: dict[str, Any], raw_units: Mapping[str, str]) -> dict[st
     return doc
 
 
+def _metadata_json(results: Mapping[str, pa.Table], schema: str, key: bytes, context: Mapping[str, Any],
+                   path: Path) -> list[Path]:
+    """``path`` from the JSON document a table of ``schema`` carries in its metadata ``key``,
+    with the run's session; [] when no such table is among the results."""
+    from . import schemas
+
+    for table in results.values():
+        if schemas.schema_of(table) == schema:
+            doc = json.loads(table.schema.metadata[key])
+            doc["session"] = str(context.get("session", doc.get("session", "")))
+            write_text(path, json.dumps(doc, indent=1) + "\n")
+            return [path]
+    return []
+
+
 class ResidualMapFiles:
     """``out_dir/residual_map.json`` and ``out_dir/residuals.parquet`` (``spec/contracts.md``): the
     map of where the model fails and the whitened per-sample residual table it was built from,
@@ -92,16 +116,10 @@ class ResidualMapFiles:
         from . import schemas
         from .io import atomic_path
 
-        written = []
+        written = _metadata_json(results, "residual_map", b"imupipe.residual_map", context,
+                                 Path(out_dir) / "residual_map.json")
         for table in results.values():
-            sid = schemas.schema_of(table)
-            if sid == "residual_map":
-                doc = json.loads(table.schema.metadata[b"imupipe.residual_map"])
-                doc["session"] = str(context.get("session", doc.get("session", "")))
-                path = Path(out_dir) / "residual_map.json"
-                write_text(path, json.dumps(doc, indent=1) + "\n")
-                written.append(path)
-            elif sid == "sample_residuals":
+            if schemas.schema_of(table) == "sample_residuals":
                 import pyarrow.parquet as pq
 
                 path = Path(out_dir) / "residuals.parquet"
@@ -115,35 +133,14 @@ class DiagnosisJson:
     """``out_dir/diagnosis.json`` (``spec/contracts.md``) from the table of schema ``diagnosis``."""
 
     name = "diagnosis"
-    version = "1"
+    version = "2"
     writes = ("diagnosis.json",)
 
     def export(
         self, results: Mapping[str, pa.Table], context: Mapping[str, Any], out_dir: Path
     ) -> list[Path]:
-        from . import schemas
-
-        written = []
-        for table in results.values():
-            if schemas.schema_of(table) == "diagnosis":
-                doc = json.loads(table.schema.metadata[b"imupipe.diagnosis"])
-                doc["session"] = str(context.get("session", doc.get("session", "")))
-                path = Path(out_dir) / "diagnosis.json"
-                write_text(path, json.dumps(doc, indent=1) + "\n")
-                written.append(path)
-                written += self._terms_into_calibration(doc, Path(out_dir) / "calibration.json")
-        return written
-
-    @staticmethod
-    def _terms_into_calibration(doc: dict, path: Path) -> list[Path]:
-        """The accepted terms join ``calibration.json`` as ``model_terms`` (effects.md names)."""
-        if not path.exists():
-            return []
-        cal = json.loads(path.read_text())
-        cal["model_terms"] = [{"effect": f["effect"], "sensor": f["sensor"], "parameters": f["parameters"]}
-                              for f in doc["findings"] if f["effect"] != "unknown"]
-        write_text(path, json.dumps(cal, indent=1) + "\n")
-        return [path]
+        return _metadata_json(results, "diagnosis", b"imupipe.diagnosis", context,
+                              Path(out_dir) / "diagnosis.json")
 
 
 class NoiseJson:
@@ -153,22 +150,13 @@ class NoiseJson:
     rate; a ``kalibr`` block (largest axis, Kalibr's names and units); the rests used."""
 
     name = "noise_json"
-    version = "1"
+    version = "2"
     writes = ("noise.json",)
 
     def export(
         self, results: Mapping[str, pa.Table], context: Mapping[str, Any], out_dir: Path
     ) -> list[Path]:
-        from . import schemas
-
-        for table in results.values():
-            if schemas.schema_of(table) == "noise":
-                doc = {"session": str(context.get("session", "")),
-                       **json.loads(table.schema.metadata[b"imupipe.noise"])}
-                path = Path(out_dir) / "noise.json"
-                write_text(path, json.dumps(doc, indent=1) + "\n")
-                return [path]
-        return []
+        return _metadata_json(results, "noise", b"imupipe.noise", context, Path(out_dir) / "noise.json")
 
 
 COMPONENTS: list = [CalibrationJson(), ResidualMapFiles(), DiagnosisJson(), NoiseJson()]

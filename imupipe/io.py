@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+
 import contextlib
 import hashlib
 import os
@@ -90,3 +92,11 @@ def table_digest(table: pa.Table) -> str:
         writer.write_table(table.combine_chunks())
     h.update(sink.getvalue())
     return h.hexdigest()
+
+
+def remove(path: Path) -> None:
+    """Remove a file, link or folder tree if it is there."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)

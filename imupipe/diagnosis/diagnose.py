@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from .evaluate import Evaluation
-from .residual_map import _windows
+from .residual_map import windows
 from .select import REVEAL, UNTESTED, VISIBLE_MIN, Q_FDR, Finding, candidates, heldout, select, examine
 
 AXES = ("x", "y", "z")
@@ -78,14 +78,14 @@ def _finding(lin, rp: np.ndarray, f: Finding, others: list[Finding], effects: di
     before, after = heldout(lin, rp, f, others)
     contrib = (f.tested.projected @ f.theta) ** 2
     rows = np.any(c.columns != 0, axis=1)
-    windows = _windows(lin.rows.t[rows], contrib[rows])
+    where = windows(lin.rows.t[rows], contrib[rows])
     try:
         words = effects[c.effect].explain({k: v for k, v in params.items()})
     except Exception:  # noqa: BLE001 - a plugin's explain must not sink the diagnosis
         words = f"{c.effect}: {params}"
     return {
         "effect": c.effect, "sensor": c.sensor, "axes": list(AXES), "regime": c.regime,
-        "windows": [[float(a), float(b)] for a, b in windows],
+        "windows": [[float(a), float(b)] for a, b in where],
         "parameters": params,
         "significance": {"statistic": f.statistic, "p_value": f.p_value, "delta_bic": f.delta_bic},
         "heldout_rms_before": before, "heldout_rms_after": after,

@@ -227,10 +227,8 @@ def _white_rest_chi2(model: JointModel, lin: Linearised, white: Rests) -> dict[s
     """chi2 of the rest blocks at the same fit, whitened as if the rests' samples were white."""
     out = {}
     for block, sensor, W in (("accel_rest", "accel", model.W_a), ("gyro_rest", "gyro", model.W_g)):
-        q = model.q["wa" if sensor == "accel" else "wg"]
-        cov = white.cov_of_mean(sensor) + np.einsum("n,a->na", model.length / 12.0, q)[:, :, None] * np.eye(3)
         e = np.linalg.solve(W, lin.r[lin.rows.of(block)].reshape(-1, 3, 1))[:, :, 0]  # raw residual
-        L = np.linalg.cholesky(cov)
+        L = np.linalg.cholesky(model.rest_cov(white, sensor))
         z = np.linalg.solve(L, e[:, :, None])[:, :, 0]
         out[block] = float((z ** 2).sum())
     return out

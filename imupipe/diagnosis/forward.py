@@ -254,9 +254,8 @@ class JointModel:
         v0 = (self.y_a - np.outer(self.dT, start.k_a) - start.b_a) @ np.linalg.inv(start.S_a).T
         self.u0 = v0 / np.linalg.norm(v0, axis=1, keepdims=True)
         self.B = tangent_basis(self.u0)
-        bridge = {w: np.einsum("n,a->na", self.length / 12.0, self.q[w]) for w in ("wg", "wa")}
-        self.W_a = _whiteners(rests.cov_of_mean("accel") + bridge["wa"][:, :, None] * np.eye(3))
-        self.W_g = _whiteners(rests.cov_of_mean("gyro") + bridge["wg"][:, :, None] * np.eye(3))
+        self.W_a = _whiteners(self.rest_cov(rests, "accel"))
+        self.W_g = _whiteners(self.rest_cov(rests, "gyro"))
         # ---- motions
         self.motions = MotionSamples.from_turns(turns.t, turns.gyro)
         self.quad = Quadrature(self.motions)
@@ -301,6 +300,13 @@ class JointModel:
         self.rows = self._rows()
 
     # ------------------------------------------------------------------ helpers
+    def rest_cov(self, rests: Rests, sensor: str) -> np.ndarray:
+        """(n, 3, 3) covariance of each rest's mean reading about the model's: the samples'
+        noise averaged, plus the bias walk's wander about its mean over the rest (a Brownian
+        bridge: q T / 12)."""
+        bridge = np.outer(self.length / 12.0, self.q["wa" if sensor == "accel" else "wg"])
+        return rests.cov_of_mean(sensor) + bridge[:, :, None] * np.eye(3)
+
     def temperature_at(self, t: np.ndarray) -> np.ndarray:
         """degC at times ``t`` (s): the temperature stream when given, else the rests' means
         interpolated in time; unknown is the reference (no thermal term)."""

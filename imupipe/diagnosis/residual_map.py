@@ -173,7 +173,7 @@ def rest_scatter_rows(ev: Evaluation) -> RowSet:
                   np.repeat(t, 3), {"time s": np.repeat(t, 3), "temperature degC": T}, family="noise")
 
 
-def _windows(t: np.ndarray, contrib: np.ndarray, gap: float = 2.0, keep: int = 12) -> list[tuple[float, float]]:
+def windows(t: np.ndarray, contrib: np.ndarray, gap: float = 2.0, keep: int = 12) -> list[tuple[float, float]]:
     """Time windows (s) covered by rows at ``t``, joined across gaps < ``gap``; the ``keep``
     windows holding most of the chi2 excess, in time order."""
     if not len(t):
@@ -225,7 +225,7 @@ def _cells_of(rs: RowSet, sensor: str, axes: tuple[str, ...], regime: str, sel: 
             return None
         r2 = rs.r[idx] ** 2
         return Cell(sensor, axes, regime, variable, lo, hi, float(r2.sum()), dof, idx,
-                    _windows(rs.t[idx], r2 - rs.w[idx]), _batch_sd(rs.t[idx], r2, rs.w[idx]))
+                    windows(rs.t[idx], r2 - rs.w[idx]), _batch_sd(rs.t[idx], r2, rs.w[idx]))
 
     label = "all" if rs.family == "model" else "within-rest scatter"
     out = [make(label, -np.inf, np.inf, sel)]

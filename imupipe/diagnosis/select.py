@@ -36,6 +36,7 @@ from scipy.signal import savgol_filter
 
 from ..rotations import skew
 from .linearised import Linearised
+from .residual_map import benjamini_hochberg
 
 VISIBLE_MIN = 0.05
 Q_FDR = 0.05
@@ -273,7 +274,7 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR) -> tuple[np.
             break
         scored = [(t, *stat(t, accepted)) for t in rest]
         p = np.array([s[2] for s in scored])
-        ok = _bh(p, q)
+        ok = benjamini_hochberg(p, q)
         if not ok.any():
             break
         best = min((s for s, o in zip(scored, ok) if o), key=lambda s: s[2])
@@ -299,16 +300,6 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR) -> tuple[np.
             f.theta = theta[o:o + k]
             o += k
     return rp, accepted
-
-
-def _bh(p: np.ndarray, q: float) -> np.ndarray:
-    n = len(p)
-    order = np.argsort(p)
-    passed = p[order] <= q * np.arange(1, n + 1) / n
-    out = np.zeros(n, bool)
-    if passed.any():
-        out[order[: np.flatnonzero(passed).max() + 1]] = True
-    return out
 
 
 def raw_units(lin: Linearised, r: np.ndarray) -> dict[str, np.ndarray]:

@@ -17,7 +17,6 @@ import glob
 import hashlib
 import logging
 import os
-import shutil
 import traceback
 import warnings
 from collections.abc import Sequence
@@ -26,6 +25,7 @@ from pathlib import Path
 
 from .. import __version__
 from ..errors import ImupipeError, MissingExtraError
+from ..io import remove
 from ..paths import check_out_dir, safe_name, under
 from ..plugins import Registry, make_registry
 from ..progress import progress
@@ -160,7 +160,7 @@ def process_session(
         _commit(staging, run_dir)
         raise
     except BaseException as exc:
-        _remove(staging)
+        remove(staging)
         _record_error(run_dir / MANIFEST, f"{type(exc).__name__}: {exc}")
         raise
     _commit(staging, run_dir)
@@ -213,7 +213,7 @@ def _commit(staging: Path, run_dir: Path) -> None:
             else:
                 os.replace(src, dst)
     finally:
-        _remove(staging)
+        remove(staging)
 
 
 def _remove_aside(path: Path, staging: Path) -> None:
@@ -226,7 +226,7 @@ def _remove_aside(path: Path, staging: Path) -> None:
         os.rename(path, aside)
     except FileNotFoundError:
         return
-    _remove(aside)
+    remove(aside)
 
 
 def remove_stale_parts(folder: Path, depth: int = 1) -> None:
@@ -250,7 +250,7 @@ def remove_stale_parts(folder: Path, depth: int = 1) -> None:
         except FileNotFoundError:
             continue
         if old or pid is None or not _alive(pid):
-            _remove(p)
+            remove(p)
 
 
 def _part_pid(name: str) -> int | None:
@@ -272,13 +272,6 @@ def _alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
-
-
-def _remove(path: Path) -> None:
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path, ignore_errors=True)
-    else:
-        path.unlink(missing_ok=True)
 
 
 def export_context(session: str, pipeline: Pipeline, stages: dict[str, dict],
@@ -305,8 +298,11 @@ def _exporters(pipeline: Pipeline, registry: Registry) -> list[tuple[str, object
     """(name, exporter, the refs of the tables it gets) of the pipeline's exports, in order."""
     out = []
     if pipeline.export_calibration:
+        terms = tuple(r for r in pipeline.export_reports  # imupipe diagnose: model_terms
+                      if r.source in pipeline.nodes
+                      and pipeline.nodes[r.source].stage.outputs.get(r.port) == "diagnosis")
         out.append(("calibration_json", registry.get("exporters", "calibration_json"),
-                    pipeline.export_calibration))
+                    pipeline.export_calibration + terms))
     if pipeline.export_reports:
         for name in ("residual_map", "diagnosis", "noise_json", "report"):  # only report needs an extra
             if name in registry.names("exporters"):

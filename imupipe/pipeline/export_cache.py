@@ -25,7 +25,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from ..io import atomic_path, write_text
+from ..io import atomic_path, remove, write_text
 from .cache import canonical, sha256
 
 MARKER = ".exports.json"
@@ -101,13 +101,6 @@ def _copy(src: Path, dst: Path) -> None:
         shutil.copyfile(src, tmp)
 
 
-def _remove(path: Path) -> None:
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path, ignore_errors=True)
-    else:
-        path.unlink(missing_ok=True)
-
-
 def run_cached(name: str, exporter: Any, key: str, tables: Callable[[], Mapping[str, Any]],
                context: Callable[[], Mapping[str, Any]], run_dir: Path, cache_root: Path
                ) -> list[Path]:
@@ -126,7 +119,7 @@ def run_cached(name: str, exporter: Any, key: str, tables: Callable[[], Mapping[
         stored = None
     if stored is not None and all((entry / rel).is_file() for rel in stored):
         for target in getattr(exporter, "writes", ()):  # exactly the cached set, nothing stale
-            _remove(run_dir / target)
+            remove(run_dir / target)
         paths = [run_dir / rel for rel in stored]
         for rel, dst in zip(stored, paths):
             _copy(entry / rel, dst)
