@@ -55,6 +55,7 @@ class DataflashReader:
         path = Path(path)
         rows: dict[tuple[str, int], list] = defaultdict(list)
         params: dict[str, float] = {}
+        log = None
         try:
             log = dfreader.DFReader_binary(str(path))
             while (m := log.recv_match(type=["IMU", "IMU2", "IMU3", "MAG", "MAG2", "MAG3",
@@ -74,6 +75,9 @@ class DataflashReader:
         except Exception as exc:  # noqa: BLE001 -- DFReader raises many types on bad bytes
             raise ReaderError(f"{path}: not a readable DataFlash log ({type(exc).__name__}: "
                               f"{exc}); copy the .bin from the SD card again") from None
+        finally:
+            if log is not None:
+                log.close()
         if left > 0:  # a log cut off mid-message (power lost): its complete messages stand
             warnings.warn(f"{path}: the last {left} bytes are no complete message (the log was "
                           "cut off?); read the messages before them", stacklevel=2)
