@@ -118,6 +118,7 @@ def one_seed(args: tuple[str, int, list[str], float, str]) -> dict:
             "wrong": [f["effect"] for f in doc["findings"] if f["effect"] not in (e, "unknown")],
             "top_cell_right": bool(top and top["sensor"] == SENSOR.get(e, "accel")
                                    and top["regime"] in (regime, "all")),
+            "top_cell": top and f"{top['sensor']}/{top['regime']}/{top['variable']}/{'-'.join(top['axes'])}",
             "fitted_over_true": fitted_size(e, named[0]["parameters"]) / a if named else None,
             "heldout_ratio": (named[0]["heldout_rms_after"] / named[0]["heldout_rms_before"]) if named else None,
             "seconds": doc["seconds"],

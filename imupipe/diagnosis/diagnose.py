@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from .evaluate import Evaluation
-from .residual_map import windows
+from .library import structure_cells
+from .residual_map import benjamini_hochberg, windows
 from .select import REVEAL, UNTESTED, VISIBLE_MIN, Q_FDR, Finding, candidates, heldout, select, examine
 
 AXES = ("x", "y", "z")
@@ -32,9 +33,18 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
                                   "parameters": doc["parameters"], "significance": doc["significance"],
                                   "reason": f"held-out RMS did not improve ({doc['heldout_rms_before']:.4g} -> "
                                             f"{doc['heldout_rms_after']:.4g})"})
+    # structure the accepted terms leave: the generic library tested conditionally on them
+    named = {(d["effect"], d["sensor"]) for d in findings}
+    kept = [f for f in accepted if (f.tested.candidate.effect, f.tested.candidate.sensor) in named]
+    given = np.hstack([f.tested.projected for f in kept]) if kept else None
+    left = structure_cells(lin, given, rp)
+    for cell, flag in zip(left, benjamini_hochberg(np.array([c.p_value for c in left]), q)):
+        if flag and not any(u["sensor"] == cell.sensor and u["regime"] == cell.regime
+                            for u in findings if u["effect"] == "unknown"):
+            findings.append(_structure(cell))
     covered = {(f["sensor"], f["regime"]) for f in findings}
     for cell in (map_doc or {}).get("cells", []):
-        if not cell.get("flagged"):
+        if not cell.get("flagged") or cell["variable"] == "structure":  # tested above, given the findings
             continue
         regimes = {cell["regime"], "all"}
         if any((cell["sensor"], r) in covered for r in regimes):
@@ -107,6 +117,21 @@ def _unknown(cell: dict) -> dict:
                         f"with {var} in [{lo}, {hi}] have chi2/dof {cell['chi2_per_dof']:.2f} and no catalogue "
                         "term explains them: look at those windows (an unmodelled disturbance, a knock, a "
                         "vibrating support or physics outside the catalogue)."),
+    }
+
+
+def _structure(cell) -> dict:
+    follows = "; ".join(f"{t['signal']} on {t['output_axis']} ({t['coefficient']:.3g} {t['unit']}, t = {t['t']:.1f})"
+                        for t in cell.terms)
+    return {
+        "effect": "unknown", "sensor": cell.sensor, "axes": list(cell.axes), "regime": cell.regime,
+        "windows": [list(w) for w in cell.windows], "parameters": {"follows": cell.terms},
+        "significance": {"statistic": cell.chi2, "p_value": cell.p_value, "delta_bic": None},
+        "heldout_rms_before": None, "heldout_rms_after": None,
+        "explanation": (f"The {cell.sensor} {'/'.join(cell.axes)} residuals in the {cell.regime} rows follow "
+                        f"signals the model already reconstructs (score chi2 {cell.chi2:.1f} on {cell.dof:g} "
+                        f"directions, p = {cell.p_value:.2g}) and no accepted catalogue term explains it; "
+                        f"strongest: {follows}."),
     }
 
 

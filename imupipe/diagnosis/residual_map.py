@@ -304,9 +304,11 @@ def change_points(ev: Evaluation, penalty_sd: float = 4.0) -> list[Event]:
 
 def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR) -> dict:
     """The ``residual_map.json`` document of ``spec/contracts.md`` for an evaluation."""
+    from .library import structure_cells  # it builds on select, which builds on this module
+
     model_rs = model_rows(ev)
     noise_rs = rest_scatter_rows(ev)
-    all_cells = cells(model_rs) + cells(noise_rs)
+    all_cells = cells(model_rs) + cells(noise_rs) + structure_cells(ev.lin)
     p = np.array([c.p_value for c in all_cells])
     flagged = benjamini_hochberg(p, q)
     # flagged first, by the misfit they carry (chi2 - dof: a log-likelihood excess; p-values
@@ -340,6 +342,8 @@ def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR) -> dict:
             "chi2_per_dof": c.chi2_per_dof, "dof": c.dof, "p_value": float(p[i]), "flagged": bool(flagged[i]),
             "rank": rank,
         })
+        if c.variable == "structure":
+            cell_docs[-1]["terms"] = c.terms
     events = list(ev.events) + change_points(ev)
     return {"session": session, "blocks": blocks, "cells": cell_docs,
             "events": [e.to_dict() for e in sorted(events, key=lambda e: e.window[0])],
