@@ -50,8 +50,10 @@ UNTESTED = {
     "earth_rotation": "needs the heading of every rest (not in the score model yet); at rest it is "
                       "indistinguishable from an isotropic gyro g-sensitivity",
     "thermal_lag": "needs a profiled lag of the temperature stream (not in the score model yet)",
-    "mag_current_interference": "the magnetometer is not in the per-sample model yet",
-    "mag_field_gradient": "the magnetometer is not in the per-sample model yet",
+    "mag_current_interference": "the magnetometer is mapped (rest magnitude and dip, within-rest scatter) "
+                                "but has no score model yet: a flagged magnetometer cell is reported as unknown",
+    "mag_field_gradient": "the magnetometer is mapped (rest magnitude and dip, within-rest scatter) "
+                          "but has no score model yet: a flagged magnetometer cell is reported as unknown",
     "bias_random_walk": "modelled in the nominal fit (the bias walks of both triads)",
 }
 REVEAL = {
