@@ -34,6 +34,7 @@ import numpy as np
 from scipy import stats
 from scipy.signal import savgol_filter
 
+from ..effects.earth_rotation import EARTH_RATE
 from ..rotations import skew
 from .linearised import Linearised
 from .residual_map import benjamini_hochberg
@@ -212,9 +213,6 @@ def candidates(lin: Linearised, frame: np.ndarray, registry) -> list[Candidate]:
                                                                          "sensor": sensor},
                                      extra_dof=len(WARMUP_TAUS_S), fixed={"tau_s": tau}))
     return [c for c in out if np.any(c.columns)]
-
-
-EARTH_RATE = 7.292115e-5  # rad/s
 
 
 def _latitude(th: np.ndarray) -> dict:
