@@ -14,7 +14,7 @@ import numpy as np
 from .evaluate import Evaluation
 from .library import structure_cells
 from .residual_map import benjamini_hochberg, windows
-from .select import EARTH_RATE, REVEAL, UNTESTED, VISIBLE_MIN, Q_FDR, Finding, candidates, heldout, select, examine
+from .select import BLOCK_S, BOOT_DRAWS, EARTH_RATE, REVEAL, UNTESTED, VISIBLE_MIN, Q_FDR, Finding, candidates, heldout, select, examine
 
 AXES = ("x", "y", "z")
 EARTH_IMPLAUSIBLE = 1.2  # a vertical rate above this many Earth rates is not Earth's
@@ -77,7 +77,8 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
                  for e in ("lever_arm", "accel_gyro_time_offset") if e in effects and e not in present]
     return {"session": session, "findings": findings, "not_identifiable": not_identifiable,
             "not_confirmed": not_confirmed, "tested": tested_doc, "untested": untested, "fdr_q": q,
-            "method": "score tests against the fitted per-sample model (chi-square, asymptotic), "
+            "method": "score tests against the fitted per-sample model (the larger p of chi-square and a wild "
+                      f"bootstrap over {BLOCK_S:g}-s time blocks, {BOOT_DRAWS} draws), "
                       "Benjamini-Hochberg forward selection with a backward check, 5-fold blocked "
                       "cross-validation by rest and motion"}
 
@@ -101,7 +102,8 @@ def _finding(lin, rp: np.ndarray, f: Finding, others: list[Finding], effects: di
         "effect": effect, "sensor": c.sensor, "axes": list(AXES), "regime": c.regime,
         "windows": [[float(a), float(b)] for a, b in where],
         "parameters": params,
-        "significance": {"statistic": f.statistic, "p_value": f.p_value, "delta_bic": f.delta_bic},
+        "significance": {"statistic": f.statistic, "p_value": f.p_value, "p_value_asymptotic": f.p_asymptotic,
+                         "delta_bic": f.delta_bic, "bootstrap_draws": BOOT_DRAWS},
         "heldout_rms_before": before, "heldout_rms_after": after,
         "visible_fraction": f.tested.visible,
         "explanation": (f"The {c.sensor} residuals in the {c.regime} rows carry a term the nominal model "

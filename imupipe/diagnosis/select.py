@@ -20,8 +20,9 @@ the nuisances' Jacobian, through the fit's own block-tridiagonal system), so
   motions) the term is fitted without a block and the block's residual RMS in the sensor's
   units is compared without and with it.
 
-The p-values are asymptotic (chi-square); ``bench/diagnosis.py`` measures how often nulls
-produce a finding. Effects whose terms act through the attitude integration (gyro scale
+A p-value is the larger of the asymptotic (chi-square) one and a wild bootstrap's over 5-s
+time blocks (``wild_p``: the recording's own noise, whatever its colour, without a noise
+model); ``bench/diagnosis.py`` measures how often nulls produce a finding. Effects whose terms act through the attitude integration (gyro scale
 asymmetry, saturation, g-sensitivity in motion), the magnetometer and the thermal lag are not
 tested here yet: ``untested`` lists them with the reason.
 """
@@ -44,6 +45,8 @@ Q_FDR = 0.05
 FOLDS = 5
 WARMUP_TAUS_S = (30.0, 120.0, 600.0)
 NONCENTRALITY_80 = 7.85  # chi2_1 noncentrality for 80 % power at alpha = 0.05
+BLOCK_S = 5.0  # time blocks of the wild bootstrap (rows within a block keep their signs together)
+BOOT_DRAWS = 999
 UNTESTED = {
     "gyro_scale_asymmetry": "acts through the attitude integration inside motions (not in the score model yet)",
     "gyro_saturation": "acts through the attitude integration inside motions (not in the score model yet)",
@@ -249,6 +252,24 @@ def _score(r: np.ndarray, Cp: np.ndarray, scale: float) -> tuple[float, np.ndarr
     return float(g @ theta) / scale, theta
 
 
+def wild_p(Cp: np.ndarray, r: np.ndarray, groups: np.ndarray, draws: int = BOOT_DRAWS) -> float:
+    """p-value of the score statistic ``r' Cp (Cp' Cp)^-1 Cp' r`` by a wild bootstrap over time
+    blocks (``groups``: each row's block): every draw flips the sign of whole blocks of the
+    residual. It keeps the recording's own noise -- correlated within a block, of any size and
+    shape -- and needs no noise model; a term that is really there is consistent across blocks
+    and stands out of the flipped draws. Deterministic (seeded)."""
+    Binv = np.linalg.pinv(Cp.T @ Cp)
+    _, inv = np.unique(groups, return_inverse=True)
+    G = inv.max() + 1
+    g_b = np.column_stack([np.bincount(inv, Cp[:, j] * r, G) for j in range(Cp.shape[1])])  # (G, k)
+    g = g_b.sum(0)
+    T = float(g @ Binv @ g)
+    signs = np.random.default_rng(0).choice([-1.0, 1.0], (draws, G))
+    gs = signs @ g_b
+    T_star = np.einsum("dk,kl,dl->d", gs, Binv, gs)
+    return float((1 + np.sum(T_star >= T)) / (draws + 1))
+
+
 def _orth(X: np.ndarray, A: np.ndarray | None) -> np.ndarray:
     if A is None or not A.shape[1]:
         return X
@@ -262,6 +283,7 @@ class Finding:
     p_value: float
     delta_bic: float
     theta: np.ndarray = None  # type: ignore[assignment]
+    p_asymptotic: float = float("nan")  # chi-square's, before the bootstrap's floor of 1/(draws + 1)
 
 
 def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR) -> tuple[np.ndarray, list[Finding]]:
@@ -273,7 +295,12 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR) -> tuple[np.
     pool = [t for t in tested if t.visible >= VISIBLE_MIN]
     accepted: list[Finding] = []
 
-    def stat(t: Tested, others: list[Finding]) -> tuple[float, float]:
+    t_rows = np.nan_to_num(lin.rows.t)
+    groups = np.floor((t_rows - t_rows.min()) / BLOCK_S).astype(np.int64)
+
+    def stat(t: Tested, others: list[Finding]) -> tuple[float, float, float]:
+        """Score statistic, its p-value (the larger of the asymptotic and the wild bootstrap's)
+        and the asymptotic one (which ranks the candidates: the bootstrap's floors at 1/1000)."""
         A = np.hstack([f.tested.projected for f in others]) if others else None
         Cp = _orth(t.projected, A)
         r = _orth(rp, A)
@@ -282,8 +309,10 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR) -> tuple[np.
         scale = max(1.0, float(r[rows] @ r[rows]) / dof)
         T, _ = _score(r, Cp, scale)
         k = Cp.shape[1]
-        p = min(1.0, float(stats.chi2.sf(T, k)) * max(1, t.candidate.extra_dof))
-        return T, p
+        bonferroni = max(1, t.candidate.extra_dof)
+        p_asym = min(1.0, float(stats.chi2.sf(T, k)) * bonferroni)
+        p = p_asym if p_asym > q else max(p_asym, min(1.0, wild_p(Cp, r, groups) * bonferroni))
+        return T, p, p_asym
 
     while True:
         taken = {(f.tested.candidate.effect, f.tested.candidate.sensor) for f in accepted}
@@ -295,17 +324,17 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR) -> tuple[np.
         ok = benjamini_hochberg(p, q)
         if not ok.any():
             break
-        best = min((s for s, o in zip(scored, ok) if o), key=lambda s: s[2])
-        t, T, pv = best
-        accepted.append(Finding(t, T, pv, -T + t.projected.shape[1] * np.log(n_rows)))
+        best = min((s for s, o in zip(scored, ok) if o), key=lambda s: s[3])
+        t, T, pv, pa = best
+        accepted.append(Finding(t, T, pv, -T + t.projected.shape[1] * np.log(n_rows), p_asymptotic=pa))
         # backward check
         for f in list(accepted):
             others = [g for g in accepted if g is not f]
-            T2, p2 = stat(f.tested, others)
+            T2, p2, pa2 = stat(f.tested, others)
             if p2 > q:
                 accepted.remove(f)
             else:
-                f.statistic, f.p_value = T2, p2
+                f.statistic, f.p_value, f.p_asymptotic = T2, p2, pa2
                 f.delta_bic = -T2 + f.tested.projected.shape[1] * np.log(n_rows)
         if best[0] not in [f.tested for f in accepted]:
             break
@@ -330,11 +359,12 @@ def _earth_or_g(accepted: list[Finding], pool: list[Tested], stat, n_rows: int) 
     if g is None or e is None or any(f.tested is e for f in accepted):
         return
     others = [f for f in accepted if f is not g]
-    T_g, _ = stat(g.tested, others)
-    T_e, p_e = stat(e, others)
+    T_g, *_ = stat(g.tested, others)
+    T_e, p_e, pa_e = stat(e, others)
     extra = g.tested.projected.shape[1] - e.projected.shape[1]
     if T_g - T_e < extra * np.log(n_rows) and p_e <= g.p_value * 1e3:
-        accepted[accepted.index(g)] = Finding(e, T_e, p_e, -T_e + e.projected.shape[1] * np.log(n_rows))
+        accepted[accepted.index(g)] = Finding(e, T_e, p_e, -T_e + e.projected.shape[1] * np.log(n_rows),
+                                                p_asymptotic=pa_e)
 
 
 def raw_units(lin: Linearised, r: np.ndarray) -> dict[str, np.ndarray]:
