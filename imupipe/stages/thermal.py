@@ -9,6 +9,7 @@ downstream stages take ``k`` from them; they are not a calibration to export.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from collections.abc import Mapping
 from typing import Literal
@@ -62,6 +63,22 @@ def average_sigma(v: np.ndarray) -> np.ndarray:
     return 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / np.sqrt(2)
 
 
+def _honest_cov(fit, z: np.ndarray, batches: int = 8):
+    """The fit with its covariance inflated per axis by what its whitened residuals ``z`` (n, 3)
+    show: their chi2/dof and, from ``batches`` batch means, their correlation (a bias walk or a
+    lagging read-out over the warm-up makes neighbouring averages agree, and the white-noise
+    covariance then understates the uncertainty of k several-fold)."""
+    n = len(z)
+    factor = np.maximum(1.0, np.sum(z ** 2, axis=0) / max(n - 2, 1))
+    m = n // batches
+    if m >= 2:
+        means = z[: m * batches].reshape(batches, m, 3).mean(1)
+        ratio = means.var(0, ddof=1) / (z.var(0, ddof=1) / m)
+        factor = factor * np.maximum(1.0, ratio)
+    d = np.sqrt(np.tile(factor, 2))  # b0 (3), k (3): each axis by its own factor
+    return dataclasses.replace(fit, cov=np.asarray(fit.cov) * np.outer(d, d))
+
+
 def warmup_window(inputs: Mapping[str, pa.Table], p: ThermalParams, t0: int) -> tuple[float, float]:
     if p.warmup_window_s is not None:
         return p.warmup_window_s
@@ -105,6 +122,8 @@ def fit_thermal(inputs: Mapping[str, pa.Table], params: ThermalParams, solver: B
                 sensor, solver.solver.name, extra={"k_fitted": False, "reason": str(exc),
                                                    "role": "thermal coefficients only (M = I)"}))
             continue
+        pred = fit.b0 + np.outer(Tm - obs.T_ref_C, fit.k)
+        fit = _honest_cov(fit, (vm - pred) / obs.sigma)
         sd = np.sqrt(np.clip(np.diag(fit.cov), 0, None))
         keep_b0 = sensor == "gyro"  # accel/mag: b0 holds the projection of g or B (paper)
         details = {**dict(fit.details), "sigma_k": sd[3:].tolist(),
@@ -115,7 +134,6 @@ def fit_thermal(inputs: Mapping[str, pa.Table], params: ThermalParams, solver: B
         triads.append(TriadFit(np.eye(3), fit.b0 if keep_b0 else np.zeros(3), np.zeros((12, 12)))
                       .to_calibration(sensor, solver.solver.name, k=fit.k, sigma_k=sd[3:],
                                       extra=details))
-        pred = fit.b0 + np.outer(Tm - obs.T_ref_C, fit.k)
         residuals.append(residual_table("fit_thermal", sensor, "average", tm, Tm, vm, pred,
                                         np.tile(obs.sigma, (len(tm), 1))))
     if not residuals:
@@ -127,7 +145,7 @@ def fit_thermal(inputs: Mapping[str, pa.Table], params: ThermalParams, solver: B
 
 
 STAGE = Stage(
-    name="fit_thermal", version="1", func=fit_thermal,
+    name="fit_thermal", version="2", func=fit_thermal,
     inputs={"temperature": "temperature", "accel": "accel", "gyro": "gyro", "mag": "mag",
             "rests": "rests"},
     outputs={"calibration": "calibration", "residuals": "residuals"}, params=ThermalParams,
