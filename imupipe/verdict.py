@@ -413,14 +413,14 @@ def drift_checks(rests_tables: list[pa.Table], accel: Mapping[str, Any] | None) 
         drift = timed @ beta[static.shape[1]:]
         ppm = 1e6 * float(np.ptp(drift)) / g
         warn = p < DRIFT_P and ppm > DRIFT_WARN_PPM
-        detail = (f"accel drift: without a temperature stream, the rests' calibrated gravity magnitude "
-                  f"changes by {ppm:.3g} ppm over {np.ptp(mid):.0f} s in a way a static calibration "
-                  f"does not explain (F-test p = {p:.2g}; warn above {DRIFT_WARN_PPM:g} ppm at p < "
-                  f"{DRIFT_P:g})")
+        detail = (f"accel drift without a temperature stream: time-dependent scale and bias terms "
+                  f"move the rests' calibrated gravity magnitude by {ppm:.3g} ppm over "
+                  f"{np.ptp(mid):.0f} s (F-test p = {p:.2g}; warn above {DRIFT_WARN_PPM:g} ppm at "
+                  f"p < {DRIFT_P:g})")
         if warn:
-            detail += (": a thermal (warm-up) drift the calibration averages over, its scale and bias "
-                       "are off by up to that much; log the IMU's temperature, or record after the "
-                       "warm-up")
+            detail += (": a drift no static calibration explains (thermal warm-up?); the scale and "
+                       "bias are averages over it, off by up to that much; log the IMU's "
+                       "temperature, or record after the warm-up")
         out.append(Check("drift", "warn" if warn else "pass", detail))
     return out
 
