@@ -327,6 +327,7 @@ def main() -> int:
     rng = np.random.default_rng(args.seed)
     totals: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
     findings = []
+    compared: list[tuple[float, str]] = []  # (sigmas from the clean answer, mutation) of exit-0 runs
     t0 = time.monotonic()
     for i in range(args.cases):
         kind = kinds[i % len(kinds)]
@@ -344,6 +345,8 @@ def main() -> int:
         code, err = run_cli(argv, sandbox, args.timeout)
         after = snapshot(sandbox)
         row = judge(case, code, err, before, after, sandbox / "out", refs.get((base, full)))
+        if "sigmas" in case.notes:
+            compared.append((case.notes["sigmas"], case.name))
         totals[case.name].update(row)
         totals["TOTAL"].update(row)
         if any(row[c] for c in COLUMNS[1:]):
@@ -360,7 +363,10 @@ def main() -> int:
           "base's calibration, no new warning)")
     for name in sorted(k for k in totals if k != "TOTAL") + ["TOTAL"]:
         print(f"{name:22s} " + " ".join(f"{totals[name][c]:12d}" for c in COLUMNS))
-    print(f"\n{len(findings)} findings in {time.monotonic() - t0:.0f} s")
+    top, top_kind = max(compared, default=(0.0, "-"))
+    print(f"\n{len(compared)} runs exited 0 with a calibration compared with the clean one; largest "
+          f"difference {top:g} own sigmas ({top_kind})")
+    print(f"{len(findings)} findings in {time.monotonic() - t0:.0f} s")
     for i, case, code, tail, row in findings[:40]:
         cols = ",".join(c for c in COLUMNS[1:] if row[c])
         print(f"  case {i} {case.name} ({case.expect}, {case.command} {case.session}) exit {code} "
