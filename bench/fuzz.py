@@ -16,6 +16,9 @@ end, one row per mutation and a total; target 0 in every column but ``cases``:
                      imupipe's own one-line warnings before it (numpy noise, a second line)
     outside_out      a file outside --out created, changed or deleted
     half_written     a .part left, an unreadable .json/.arrow, or a calibration.json after a failure
+    silent_wrong     exit 0 with an accel or gyro M or b0 more than 10 times its own 1-sigma from
+                     the clean base's calibration, and no warning that the clean run did not give
+                     (no new imupipe warning line, no verdict check worse than the clean run's)
 
 With ``--kills N``, ``imupipe batch`` is then killed (SIGKILL) N times at random points
 on one output folder: every complete cache entry must verify after each kill, and the
@@ -31,7 +34,9 @@ import argparse
 import collections
 import contextlib
 import io
+import json
 import os
+import re
 import shutil
 import signal
 import sys
@@ -46,7 +51,10 @@ sys.path.insert(0, str(ROOT / "tests" / "fuzz"))
 import numpy as np
 from mutate import ANY_FORMAT, MUTATIONS, half_written, make_case, snapshot
 
-COLUMNS = ("cases", "tracebacks", "bad_exit", "multi_line", "outside_out", "half_written")
+COLUMNS = ("cases", "tracebacks", "bad_exit", "multi_line", "outside_out", "half_written",
+           "silent_wrong")
+SILENT_SIGMAS = 10.0  # a calibration this many of its own sigmas from the clean one is another answer
+ORDER = {"pass": 0, "warn": 1, "fail": 2}
 
 
 def base_sessions(folder: Path) -> list[Path]:
@@ -138,7 +146,84 @@ def run_cli(argv: list[str], cwd: Path, timeout: float) -> tuple[int | str, str]
     return os.WEXITSTATUS(status), err
 
 
-def judge(case, code, err, before, after, out: Path) -> dict[str, int]:
+def warning_kinds(err: str) -> set[str]:
+    """imupipe's warning lines with file names and numbers blanked (comparable across sessions)."""
+    out = set()
+    for line in err.splitlines():
+        if line.startswith("imupipe: warning: "):
+            line = re.sub(r"\S*\.(?:csv|mcap|toml|arrow)\S*", "<file>", line)
+            out.add(re.sub(r"[-+]?\d[\d.]*(?:e[-+]?\d+)?", "#", line))
+    return out
+
+
+def verdict_levels(doc: dict) -> dict[str, int]:
+    """Worst status per verdict check name (a check made twice keeps its worst)."""
+    levels: dict[str, int] = {}
+    for c in (doc.get("verdict") or {}).get("checks", []):
+        levels[c["check"]] = max(levels.get(c["check"], 0), ORDER.get(c["status"], 2))
+    return levels
+
+
+def clean_reference(base: Path, pipeline: Path | None, work: Path, timeout: float) -> dict | None:
+    """The clean base's calibration through ``pipeline`` (None: the default): the answer the
+    mutations are compared with, and its warnings (those a mutated run shares are not news)."""
+    sandbox = work / f"ref-{base.name}-{pipeline.stem if pipeline else 'default'}"
+    sandbox.mkdir(parents=True, exist_ok=True)
+    argv = ["run", str(base.resolve()), "--out", "out", "--quiet"]
+    code, err = run_cli(argv + (["--pipeline", str(pipeline.resolve())] if pipeline else []),
+                        sandbox, timeout)
+    found = sorted((sandbox / "out").rglob("calibration.json"))
+    if code != 0 or not found:
+        print(f"clean run of {base} failed ({code}): {err.strip()[-300:]}")
+        return None
+    return {"doc": json.loads(found[0].read_text()), "warnings": warning_kinds(err)}
+
+
+def sigmas_away(doc: dict, ref: dict) -> float:
+    """Largest |difference| of accel and gyro M and b0 from ``ref`` in units of ``doc``'s own
+    1-sigma (the reference's where ``doc`` gives none)."""
+    worst = 0.0
+    for sensor in ("accel", "gyro"):
+        a, b = doc.get(sensor), ref.get(sensor)
+        if not a or not b:
+            continue
+        for key, skey in (("M", "sigma_M"), ("b0", "sigma_b0")):
+            d = np.abs(np.asarray(a[key], float) - np.asarray(b[key], float))
+            sigma = np.asarray(a.get(skey) or b.get(skey) or np.full(d.shape, np.nan), float)
+            bad = ~(np.isfinite(sigma) & (sigma > 0))
+            if bad.any() and b.get(skey) is not None:
+                sigma = np.where(bad, np.asarray(b[skey], float), sigma)
+            z = d / sigma
+            if not np.isfinite(d).all():
+                return float("inf")
+            z = z[np.isfinite(z)]
+            worst = max(worst, float(z.max()) if z.size else 0.0)
+    return worst
+
+
+def silent_wrong(case, code, err, out: Path, ref: dict | None) -> int:
+    """1 when the run exited 0 with another answer than the clean base's and said nothing new."""
+    if ref is None or code != 0 or case.command != "run" or case.pipeline:
+        return 0
+    found = sorted(out.rglob("calibration.json"))
+    if not found:
+        return 0
+    try:
+        doc = json.loads(found[0].read_text())
+    except ValueError:
+        return 0  # half_written says it
+    z = sigmas_away(doc, ref["doc"])
+    case.notes["sigmas"] = round(z, 1)
+    if z <= SILENT_SIGMAS:
+        return 0
+    clean = verdict_levels(ref["doc"])
+    news = {k for k, v in verdict_levels(doc).items() if v > clean.get(k, 0)}
+    news |= warning_kinds(err) - ref["warnings"]
+    case.notes["news"] = sorted(news)[:3]
+    return int(not news)
+
+
+def judge(case, code, err, before, after, out: Path, ref: dict | None = None) -> dict[str, int]:
     row = dict.fromkeys(COLUMNS, 0)
     row["cases"] = 1
     if code in ("hang", "crash") or "Traceback" in err or "internal error" in err:
@@ -162,6 +247,7 @@ def judge(case, code, err, before, after, out: Path) -> dict[str, int]:
         bad += [str(p) for p in out.rglob("calibration.json")]
     row["half_written"] = int(bool(bad))
     case.notes["half"] = bad[:3]
+    row["silent_wrong"] = silent_wrong(case, code, err, out, ref)
     if before != after:
         changed = sorted(set(before.items()) ^ set(after.items()))
         case.notes["outside"] = changed[:5]
@@ -230,10 +316,18 @@ def main() -> int:
     bases = args.base or base_sessions(work)
     light = light_pipeline(work)
     preload()
+    refs = {(b, full): clean_reference(b, None if full else light, work, args.timeout)
+            for b in bases for full in (False, True)}
+    for (b, full), ref in refs.items():  # the measure itself: 0 for the clean answer, large for another
+        if ref is not None:
+            other = json.loads(json.dumps(ref["doc"]))
+            other["accel"]["b0"][0] += 0.05
+            assert sigmas_away(ref["doc"], ref["doc"]) == 0 and sigmas_away(other, ref["doc"]) > 10
     kinds = [k for k in args.kinds.split(",") if k] or sorted(MUTATIONS)
     rng = np.random.default_rng(args.seed)
     totals: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
     findings = []
+    compared: list[tuple[float, str]] = []  # (sigmas from the clean answer, mutation) of exit-0 runs
     t0 = time.monotonic()
     for i in range(args.cases):
         kind = kinds[i % len(kinds)]
@@ -250,21 +344,29 @@ def main() -> int:
         before = snapshot(sandbox)
         code, err = run_cli(argv, sandbox, args.timeout)
         after = snapshot(sandbox)
-        row = judge(case, code, err, before, after, sandbox / "out")
+        row = judge(case, code, err, before, after, sandbox / "out", refs.get((base, full)))
+        if "sigmas" in case.notes:
+            compared.append((case.notes["sigmas"], case.name))
         totals[case.name].update(row)
         totals["TOTAL"].update(row)
         if any(row[c] for c in COLUMNS[1:]):
             findings.append((i, case, code, err.strip().splitlines()[-3:], row))
         print(f"case {i:4d} {case.name:22s} {base.suffix:6s} exit {code!s:5s} "
-              f"{'!' if any(row[c] for c in COLUMNS[1:]) else ' '} {time.monotonic() - t0:7.0f} s",
+              f"{'!' if any(row[c] for c in COLUMNS[1:]) else ' '} {time.monotonic() - t0:7.0f} s"
+              + (f"  {case.notes['sigmas']:g} sigmas from clean" if "sigmas" in case.notes else ""),
               flush=True)
         if args.work is None:
             shutil.rmtree(sandbox, ignore_errors=True)
     print()
     print(f"{'mutation':22s} " + " ".join(f"{c:>12s}" for c in COLUMNS))
+    print(f"(silent_wrong: exit 0, accel/gyro more than {SILENT_SIGMAS:g} own sigmas from the clean "
+          "base's calibration, no new warning)")
     for name in sorted(k for k in totals if k != "TOTAL") + ["TOTAL"]:
         print(f"{name:22s} " + " ".join(f"{totals[name][c]:12d}" for c in COLUMNS))
-    print(f"\n{len(findings)} findings in {time.monotonic() - t0:.0f} s")
+    top, top_kind = max(compared, default=(0.0, "-"))
+    print(f"\n{len(compared)} runs exited 0 with a calibration compared with the clean one; largest "
+          f"difference {top:g} own sigmas ({top_kind})")
+    print(f"{len(findings)} findings in {time.monotonic() - t0:.0f} s")
     for i, case, code, tail, row in findings[:40]:
         cols = ",".join(c for c in COLUMNS[1:] if row[c])
         print(f"  case {i} {case.name} ({case.expect}, {case.command} {case.session}) exit {code} "

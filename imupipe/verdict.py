@@ -24,6 +24,10 @@ The checks and their limits (consumer-to-tactical MEMS, SI raw units):
 - uncertainties: reported, finite, and the 1-sigma of scale and bias below
   ``SIGMA_WARN``;
 - coverage: a rest within ``COVERAGE_DEG`` of each of the six axis directions;
+- drift without temperature: in a session without a temperature stream, the rests' calibrated
+  gravity magnitude must not change with time beyond what a static calibration explains (an
+  F-test of time-scaled scale and bias terms against the static ones, p below ``DRIFT_P``, and
+  a drift over ``DRIFT_WARN_PPM`` of g: a thermal drift the calibration averages over);
 - the streams: rate at least ``RATE_WARN_HZ`` (``RATE_FAIL_HZ``), and the events
   the screening found (``EVENT_STATUS``: a splice fails, as its sections may come from
   different power-ups; gaps and shocks warn, the turns holding them being left out).
@@ -55,6 +59,9 @@ SIGMA_WARN = {"scale": 0.01, "accel": 0.05, "gyro": 0.005}  # 1 %, ~5 mg, ~0.3 d
 FRAME_WARN_DEG = 5.0  # gyro vs accelerometer axes (one IMU: a degree or two at most)
 FRAME_FAIL_DEG = 30.0
 COVERAGE_DEG = 60.0
+DRIFT_P = 1e-6  # the time terms explain the rests' gravity magnitude beyond chance
+DRIFT_WARN_PPM = 1000.0  # and move it by more than 0.1 % of g over the session
+DRIFT_MIN_RESTS = 24  # 9 static + 6 time terms need enough rests to test
 RATE_WARN_HZ = 50.0
 RATE_FAIL_HZ = 10.0
 VALIDATION_ACCEPTED_WARN = 0.9  # fraction of informative turns within tolerance
@@ -94,6 +101,7 @@ def judge(calibration: Mapping[str, Any], tables: Mapping[str, pa.Table] | None 
     checks += frame_checks(calibration)
     checks += sigma_checks(calibration)
     checks += coverage_checks(by_schema.get("rests", []), calibration.get("accel"))
+    checks += drift_checks(by_schema.get("rests", []), calibration.get("accel"))
     checks += stream_checks(facts or {}, by_schema.get("events", []))
     return summarise(checks)
 
@@ -355,6 +363,71 @@ def coverage_checks(rests_tables: list[pa.Table], accel: Mapping[str, Any] | Non
                          f"warn beyond {COVERAGE_DEG:g})"
                          + (": record positions around it" if status == "warn" else "")))
     return out
+
+
+def drift_checks(rests_tables: list[pa.Table], accel: Mapping[str, Any] | None) -> list[Check]:
+    """A session without temperature whose accelerometer drifts (thermally): the calibrated
+    gravity magnitude of its rests changes with time in a way no static calibration explains.
+
+    The magnitude residual of rest i, |M (a_i - b0)| - g, is regressed on the static terms a
+    re-fit could still absorb (1, u^2, u_j u_k, u: u the rest's gravity direction) and then
+    also on the same scale and bias terms times the rest's time (t u^2, t u). The F-test of the
+    time terms and the range of their fitted drift over the session decide; the test uses the
+    residuals' own scatter, not an assumed noise."""
+    if accel is None:
+        return []
+    out = []
+    for t in rests_tables[:1]:
+        need = {"accel_mean", "t_start_s", "t_end_s"}
+        if not need <= set(t.column_names) or t.num_rows < DRIFT_MIN_RESTS:
+            continue
+        if "temperature" in t.column_names and np.isfinite(_col(t, "temperature")).any():
+            continue  # the thermal stage models it (k); this check is for sessions without
+        a = np.asarray(t.column("accel_mean").combine_chunks().flatten().to_numpy(zero_copy_only=False),
+                       float).reshape(-1, 3)
+        mid = 0.5 * (_col(t, "t_start_s") + _col(t, "t_end_s"))
+        ok = np.isfinite(a).all(axis=1) & np.isfinite(mid)
+        a, mid = a[ok], mid[ok]
+        M, b0 = np.asarray(accel["M"], float), np.asarray(accel.get("b0", [0, 0, 0]), float)
+        if len(a) < DRIFT_MIN_RESTS or not (np.isfinite(M).all() and np.isfinite(b0).all()):
+            continue
+        c = (a - b0) @ M.T
+        norm = np.linalg.norm(c, axis=1)
+        if not (norm > 0).all() or np.ptp(mid) <= 0:
+            continue
+        u, g = c / norm[:, None], float(np.median(norm))
+        r = norm - g
+        tau = (mid - mid.mean()) / np.ptp(mid)
+        static = np.column_stack([np.ones(len(u)), u[:, :2] ** 2, u[:, [0, 0, 1]] * u[:, [1, 2, 2]], u])
+        timed = tau[:, None] * np.column_stack([u**2, u])
+        X = np.column_stack([static, timed])
+        rss0 = _rss(static, r)[0]
+        rss1, beta = _rss(X, r)
+        dof = len(r) - X.shape[1]
+        if dof < 8 or rss1 <= 0:
+            continue
+        from scipy import stats
+
+        F = (rss0 - rss1) / timed.shape[1] / (rss1 / dof)
+        p = float(stats.f.sf(F, timed.shape[1], dof))
+        drift = timed @ beta[static.shape[1]:]
+        ppm = 1e6 * float(np.ptp(drift)) / g
+        warn = p < DRIFT_P and ppm > DRIFT_WARN_PPM
+        detail = (f"accel drift without a temperature stream: time-dependent scale and bias terms "
+                  f"move the rests' calibrated gravity magnitude by {ppm:.3g} ppm over "
+                  f"{np.ptp(mid):.0f} s (F-test p = {p:.2g}; warn above {DRIFT_WARN_PPM:g} ppm at "
+                  f"p < {DRIFT_P:g})")
+        if warn:
+            detail += (": a drift no static calibration explains (thermal warm-up?); the scale and "
+                       "bias are averages over it, off by up to that much; log the IMU's "
+                       "temperature, or record after the warm-up")
+        out.append(Check("drift", "warn" if warn else "pass", detail))
+    return out
+
+
+def _rss(X: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray]:
+    beta, *_ = np.linalg.lstsq(X, y, rcond=None)
+    return float(((y - X @ beta) ** 2).sum()), beta
 
 
 def stream_checks(facts: Mapping[str, Mapping[str, Any]], events: list[pa.Table]) -> list[Check]:

@@ -25,6 +25,10 @@ Tables carry ``imupipe.frame_convention = FRD`` and, per instance,
 
 from __future__ import annotations
 
+import contextlib
+import io
+import struct
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +42,47 @@ GAUSS = 1e-4  # T per gauss
 FRD = {"imupipe.frame_convention": "FRD"}
 RELATIVE_INVALID = 0x7FFFFFFF  # PX4's RELATIVE_TIMESTAMP_INVALID
 TOPICS = ["sensor_combined", "sensor_accel", "sensor_gyro", "sensor_mag"]
+HEADER_BYTES = 16  # magic, version, start time
+MESSAGE_TYPES = frozenset(b"BFIMPQARDLCSO")  # ULog message types (msg_size u16, msg_type u8, body)
+RESYNC_CHAIN = 8  # consecutive well-formed messages that mark where readable data resumes
+
+
+def _chain_ok(raw: bytes, off: int, n: int = RESYNC_CHAIN) -> bool:
+    for _ in range(n):
+        if off + 3 > len(raw):
+            return True
+        size, kind = struct.unpack_from("<HB", raw, off)
+        if kind not in MESSAGE_TYPES or (kind == ord("D") and size < 2) or off + 3 + size > len(raw):
+            return False
+        off += 3 + size
+    return True
+
+
+def unreadable(raw: bytes) -> tuple[list[tuple[int, int]], int]:
+    """Walk the ULog message headers of ``raw``: the byte ranges ``[(start, end)]`` that are no
+    well-formed message (zeroed or damaged regions: the samples in them are missing) and the
+    number of bytes of a last message cut off by the end of the file (0 when complete)."""
+    bad: list[tuple[int, int]] = []
+    off, n = HEADER_BYTES, len(raw)
+    arr = np.frombuffer(raw, np.uint8)
+    valid = np.isin(arr, np.frombuffer(bytes(sorted(MESSAGE_TYPES)), np.uint8))
+    while off + 3 <= n:
+        size, kind = struct.unpack_from("<HB", raw, off)
+        if kind in MESSAGE_TYPES and not (kind == ord("D") and size < 2):
+            if off + 3 + size > n:
+                return bad, n - off
+            off += 3 + size
+            continue
+        # damaged: resume at the first offset that starts a chain of well-formed messages
+        start = off
+        for cand in np.flatnonzero(valid[off + 3:]) + off + 1:  # the type byte is at offset + 2
+            if _chain_ok(raw, int(cand)):
+                off = int(cand)
+                break
+        else:
+            off = n
+        bad.append((start, off))
+    return bad, (n - off if off < n else 0)
 
 
 def _ns(us: np.ndarray) -> np.ndarray:
@@ -83,6 +128,26 @@ def _instance_time(data: dict) -> np.ndarray:
     return _ns(data["timestamp_sample"] if "timestamp_sample" in data else data["timestamp"])
 
 
+def _warn_missing(path: Path, log) -> None:
+    """One warning when part of the file is no readable message (zeroed or damaged bytes, a
+    last message cut off): pyulog skips them silently and the samples in them are missing."""
+    raw = path.read_bytes()
+    bad, cut = unreadable(raw)
+    if not bad and not cut:
+        return
+    what = []
+    if bad:
+        lost = sum(b - a for a, b in bad)
+        a, b = bad[0]
+        what.append(f"{lost} bytes ({100 * lost / len(raw):.2g} % of the log) are zeroed or damaged "
+                    f"({len(bad)} region{'s' if len(bad) > 1 else ''}, the first at bytes {a}-{b}): "
+                    "the samples in them are missing")
+    if cut:
+        what.append(f"it ends mid-message at byte {len(raw) - cut} of {len(raw)} (truncated: the "
+                    "samples recorded after it are missing)")
+    warnings.warn(f"{path}: {'; '.join(what)}; copy the .ulg from the SD card again", stacklevel=3)
+
+
 class UlogReader:
     """PX4 ULog files: ``sensor_combined`` and per-instance sensor topics."""
 
@@ -96,9 +161,11 @@ class UlogReader:
         pyulog = require("pyulog", "px4")
         path = Path(path)
         try:
-            log = pyulog.ULog(str(path), TOPICS)
+            with contextlib.redirect_stdout(io.StringIO()):  # pyulog prints its warnings
+                log = pyulog.ULog(str(path), TOPICS)
         except Exception as exc:  # noqa: BLE001 -- pyulog raises bare Exception on bad files
             raise ReaderError(f"{path}: not a readable ULog file ({exc})") from None
+        _warn_missing(path, log)
         topics: dict[str, dict[int, dict]] = {}
         for d in log.data_list:
             topics.setdefault(d.name, {})[d.multi_id] = d.data

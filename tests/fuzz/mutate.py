@@ -217,6 +217,18 @@ def _unit(kind: str):
     return fn
 
 
+def _swap_axes(rng, t: Csv):  # two gyro columns exchanged (a reader's or logger's axis mix-up)
+    i, j = (int(c) for c in rng.choice(t.cols("gyro"), 2, replace=False))
+    for r in t.rows:
+        r[i], r[j] = r[j], r[i]
+
+
+def _flip_axis(rng, t: Csv):  # one accelerometer axis sign-flipped
+    i = int(rng.choice(t.cols("accel")))
+    for r in t.rows:
+        r[i] = repr(-float(r[i]))
+
+
 def _bom_blank(rng, t: Csv):
     t.header[0] = "\ufeff" + t.header[0]
     t.rows.append([""])  # rendered as a blank line at the end
@@ -250,6 +262,8 @@ for _name, _expect, _fn in [
     ("accel_g", "either", _unit("accel_g")),
     ("mag_ut", "either", _unit("mag_ut")),
     ("huge_values", "bad", _unit("huge")),
+    ("swap_gyro_axes", "either", _swap_axes),  # exit 0 with a failing verdict, or refused
+    ("flip_accel_axis", "either", _flip_axis),
     ("bom_blank_lines", "good", _bom_blank),
     ("garbage_row", "bad", _garbage_row),
     ("ragged_row", "bad", _ragged),

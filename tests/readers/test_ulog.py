@@ -70,3 +70,47 @@ def test_missing_pyulog_names_the_extra(samples, monkeypatch):
     monkeypatch.setitem(sys.modules, "pyulog", None)  # import now fails
     with pytest.raises(MissingExtraError, match=r"imupipe\[px4\]"):
         UlogReader().read(samples / "sample.ulg")
+
+
+def _rows(rec) -> int:
+    return rec.devices["imu"]["accel"].num_rows
+
+
+def test_intact_log_reads_without_a_warning(samples, registry, recwarn):
+    read_recording(samples / "sample_log_small.ulg", registry)
+    assert not [w for w in recwarn if "ulg" in str(w.message)]
+
+
+def test_truncated_log_warns_that_samples_are_missing(samples, registry, tmp_path):
+    raw = (samples / "sample_log_small.ulg").read_bytes()
+    path = tmp_path / "cut.ulg"
+    path.write_bytes(raw[: int(len(raw) * 0.6)])  # mid-message, as a lost power or copy leaves it
+    with pytest.warns(UserWarning, match=r"cut\.ulg: it ends mid-message at byte \d+ of 552978 "
+                                         r"\(truncated: the samples recorded after it are missing"):
+        rec = read_recording(path, registry)
+    assert _rows(rec) < _rows(read_recording(samples / "sample_log_small.ulg", registry))
+
+
+def test_zeroed_region_warns_with_its_size_and_place(samples, registry, tmp_path):
+    raw = bytearray((samples / "sample_log_small.ulg").read_bytes())
+    a, b = int(len(raw) * 0.4), int(len(raw) * 0.5)
+    raw[a:b] = bytes(b - a)
+    path = tmp_path / "zeroed.ulg"
+    path.write_bytes(bytes(raw))
+    with pytest.warns(UserWarning, match=r"zeroed\.ulg: \d+ bytes \(10 % of the log\) are zeroed or "
+                                         r"damaged \(1 region, the first at bytes 368\d+-46\d+\): the "
+                                         r"samples in them are missing") as rec_w:
+        rec = read_recording(path, registry)
+    assert len([w for w in rec_w if "zeroed" in str(w.message)]) == 1
+    assert _rows(rec) < _rows(read_recording(samples / "sample_log_small.ulg", registry))
+
+
+def test_zeroed_region_is_found_in_a_log_without_sync_messages(samples, tmp_path):
+    from imupipe.readers.ulog import unreadable
+
+    raw = bytearray((samples / "sample.ulg").read_bytes())  # an older log: no sync messages
+    raw[1_000_000:1_050_000] = bytes(50_000)
+    bad, cut = unreadable(bytes(raw))
+    assert cut == 0 and len(bad) == 1
+    start, end = bad[0]
+    assert abs(start - 1_000_000) < 300 and 1_050_000 <= end < 1_050_000 + 300  # message bounds
