@@ -24,7 +24,7 @@ from .. import schemas
 from ..errors import require
 from ..io import atomic_path, write_text
 from ..paths import safe_name, under
-from . import noise_figures, residual_figures, segment_figures
+from . import html, noise_figures, residual_figures, segment_figures
 
 
 def _col(table: pa.Table, name: str) -> np.ndarray:
@@ -119,11 +119,12 @@ def _by_stage(tables: Mapping[str, pa.Table]) -> dict[tuple[str, str, str], pa.T
 
 
 class ReportExporter:
-    """Writes ``out_dir/report.md`` and ``out_dir/figures/*.png``."""
+    """Writes ``out_dir/report.md``, ``out_dir/figures/*.png`` and ``report.html`` (the same page,
+    figures embedded)."""
 
     name = "report"
-    version = "1"  # bump when the report or a figure changes for the same tables (export cache)
-    writes = ("report.md", "figures")
+    version = "2"  # bump when the report or a figure changes for the same tables (export cache)
+    writes = ("report.md", "report.html", "figures")
 
     def export(self, results: Mapping[str, pa.Table], context: Mapping[str, Any], out_dir: Path) -> list[Path]:
         mpl = require("matplotlib", "report")
@@ -256,8 +257,11 @@ class ReportExporter:
                 lines += [f"## Positions: {t.num_rows} rests", ""]
                 figure("positions", "rest positions on the sphere (raw gravity direction)", draw)
         report = out_dir / "report.md"
-        write_text(report, "\n".join(lines) + "\n")
-        return [report, *written]
+        text = "\n".join(lines) + "\n"
+        write_text(report, text)
+        page = out_dir / "report.html"  # the same, figures embedded: one file for a browser
+        write_text(page, html.render(text, out_dir))
+        return [report, page, *written]
 
 
 REPORT = ReportExporter()
