@@ -159,10 +159,11 @@ def _score(lib: _Library, axes, sel, gram, proj, h, scale, C, t_rows, unit) -> S
     theta = -D @ (score / vis[ok])  # the fitted library term (normalised coordinates)
     contrib = (C[:, idx] @ (theta / d)) ** 2
     # the signals the structure follows: marginal t of each projected column, largest first
-    bjj = np.clip(np.diag(B), 1e-300, None)
-    t = hn / np.sqrt(bjj)
+    bjj = np.diag(B)
+    shown = bjj >= VISIBLE_MIN  # a column the nominal model absorbs has no t of its own
+    t = np.where(shown, hn / np.sqrt(np.where(shown, bjj, 1.0)), 0.0)
     terms = []
-    for j in np.argsort(-np.abs(t))[:3]:
+    for j in [j for j in np.argsort(-np.abs(t)) if shown[j]][:3]:
         i, name, _, ru = lib.columns[idx[j]]
         coef = -h[idx[j]] / (bjj[j] * d[j] ** 2)
         terms.append({"output_axis": AXES[i], "signal": name, "coefficient": float(coef),
