@@ -369,9 +369,10 @@ class JointModel:
         u, du = _normalise(self.u0 + np.einsum("nij,nj->ni", self.B, d))
         return u, du @ self.B
 
-    def _rates(self, P: dict, x_l: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _rates(self, P: dict, x_l: np.ndarray, derivatives: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Calibrated rates (N, 3) of the motions' gyro samples and their derivatives (N, 3, 21)
-        w.r.t. (M_g (9), b_g (3), k_g (3), walk at the motion's start (3), at its end (3))."""
+        w.r.t. (M_g (9), b_g (3), k_g (3), walk at the motion's start (3), at its end (3));
+        ``derivatives=False``: None for them."""
         ms = self.motions
         N = len(ms)
         wa, wb = self.walk_states(x_l, "wg")
@@ -380,6 +381,8 @@ class JointModel:
         walk = (1 - lam) * wb[self.p[j]] + lam * wa[self.qr[j]] if N else np.zeros((0, 3))
         e = ms.y - P["b_g"] - np.outer(self.dT_gyro, P["k_g"]) - walk
         omega = e @ P["M_g"].T
+        if not derivatives:
+            return omega, None
         D = np.zeros((N, 3, 21))
         for i in range(3):
             D[:, i, 3 * i:3 * i + 3] = e
@@ -394,7 +397,7 @@ class JointModel:
         integrated over each knot interval, tilt part in the start rest's tangent plane, plus the
         gyro walk's wander about its interpolation across the motion (``q T^3 / 12`` in all)."""
         P = self.unpack(self.x_g0)
-        omega, _ = self._rates(P, self.x_l0_zero())
+        omega, _ = self._rates(P, self.x_l0_zero(), derivatives=False)
         att = Attitude.integrate(self.quad, omega)
         ms = self.motions
         Sg = P["M_g"] @ self.noise.gyro_sample @ P["M_g"].T
@@ -432,7 +435,7 @@ class JointModel:
         x = np.zeros(self.stages.size)
         if not self.m or not self.sampled:
             return x
-        zK = self._endpoints(self.unpack(self.x_g0), x)[0]
+        zK = self._endpoints(self.unpack(self.x_g0), x, jacobian=False)[0]
         for j in range(self.m):
             K = self.K[j]
             if K > 1:
@@ -440,15 +443,18 @@ class JointModel:
                 x[self.stages.knot_start[self.p[j]] + np.arange(2 * (K - 1))] = np.outer(frac, zK[j]).ravel()
         return x
 
-    def _endpoints(self, P: dict, x_l: np.ndarray):
-        """Gnomonic end-point ``z_K`` (m, 2) of every motion and what it needs for derivatives."""
-        omega, D = self._rates(P, x_l)
+    def _endpoints(self, P: dict, x_l: np.ndarray, jacobian: bool = True):
+        """Gnomonic end-point ``z_K`` (m, 2) of every motion and what it needs for derivatives
+        (``jacobian=False``: None for ``dz_gyro``, ``dz_dq`` and ``D``)."""
+        omega, D = self._rates(P, x_l, derivatives=jacobian)
         att = Attitude.integrate(self.quad, omega)
         u, du = self.gravity(x_l)
         w = np.einsum("mij,mj->mi", att.total, u[self.qr]) if self.m else np.zeros((0, 3))
         u0p, Bp = self.u0[self.p], self.B[self.p]
         den = np.einsum("mi,mi->m", u0p, w)
         zK = np.einsum("mia,mi->ma", Bp, w) / den[:, None]
+        if not jacobian:
+            return zK, None, None, att, None, omega, u, du
         G = (np.swapaxes(Bp, 1, 2) - np.einsum("ma,mi->mai", zK, u0p)) / den[:, None, None]  # dz/dw
         phi_T = att.end_sensitivity(D)  # (m, 3, 21)
         dz_gyro = np.einsum("mai,mij,mjp->map", G, -skew(w), phi_T)  # (m, 2, 21)
@@ -461,7 +467,7 @@ class JointModel:
         after's, ``rotation`` (m, 3, 3), ``sigma_gyro`` (m,) rad, the RMS 1-sigma per component
         of the attitude error the gyro's noise leaves at the end."""
         P = self.unpack(x_g)
-        omega, _ = self._rates(P, x_l)
+        omega, _ = self._rates(P, x_l, derivatives=False)
         R = Attitude.integrate(self.quad, omega).total
         u = self.gravity(x_l)[0]
         pred = np.einsum("mji,mj->mi", R, u[self.p]) if self.m else np.zeros((0, 3))
@@ -522,9 +528,10 @@ class JointModel:
         return np.array(prev), np.array(nxt), np.maximum(np.array(dts), 1e-9), np.array(mids)
 
     # ------------------------------------------------------------------ residuals
-    def residuals(self, x_g: np.ndarray, x_l: np.ndarray, signals: bool = False):
+    def residuals(self, x_g: np.ndarray, x_l: np.ndarray, signals: bool = False, jacobian: bool = True):
         """Whitened residual ``r`` (N,), ``J_g`` (N, P_g) dense, ``J_l`` (N, P_l) CSR; with
-        ``signals`` also a dict of the model's intermediate quantities (predictions, gravity)."""
+        ``signals`` also a dict of the model's intermediate quantities (predictions, gravity);
+        ``jacobian=False``: the residual alone (None for both Jacobians, far cheaper)."""
         P = self.unpack(x_g)
         n, g, gl = self.n, self.g, self.glob.slices
         Pg, Pl = self.glob.size, self.stages.size
@@ -532,19 +539,22 @@ class JointModel:
         r_parts, Jg_parts, trip = [], [], []
         row0 = 0
 
-        def block(r: np.ndarray, Jg: np.ndarray) -> int:
+        def block(r: np.ndarray, Jg: np.ndarray | None) -> int:
             nonlocal row0
             r_parts.append(r)
-            Jg_parts.append(Jg)
+            if jacobian:
+                Jg_parts.append(Jg)
             start = row0
             row0 += len(r)
             return start
 
         def local(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray) -> None:
+            if not jacobian:
+                return
             keep = cols >= 0
             trip.append((rows[keep].ravel(), cols[keep].ravel(), vals[keep].ravel()))
 
-        zK, dz_gyro, dz_dq, att, D, omega, u, du = self._endpoints(P, x_l) if self.m else \
+        zK, dz_gyro, dz_dq, att, D, omega, u, du = self._endpoints(P, x_l, jacobian) if self.m else \
             (None,) * 6 + self.gravity(x_l)
         wga, wgb = self.walk_states(x_l, "wg")
         waa, wab = self.walk_states(x_l, "wa")
@@ -592,7 +602,7 @@ class JointModel:
             local(rows, np.where(prev[:, None] >= 0, prev[:, None] + np.arange(3), -1), -1.0 / sq)
         sig = {"pred_accel_rest": pred_a, "pred_gyro_rest": pred_g, "gravity_rest": u}
         if self.m:
-            self._motion_rows(P, x_l, zK, dz_gyro, dz_dq, att, D, omega, u, du, block, local, sig)
+            self._motion_rows(P, x_l, zK, dz_gyro, dz_dq, att, D, omega, u, du, block, local, sig, jacobian)
         # ---- temperature-coefficient prior
         if len(self.k_prior):
             k_all = np.concatenate([P["k_a"], P["k_g"]])
@@ -601,6 +611,8 @@ class JointModel:
             Jg[np.arange(len(self.k_prior)), ks + self.k_prior] = self.k_prior_w
             block((k_all - self.k0)[self.k_prior] * self.k_prior_w, Jg)
         r = np.concatenate(r_parts)
+        if not jacobian:
+            return (r, None, None, sig) if signals else (r, None, None)
         J_g = np.vstack(Jg_parts)
         rr, cc, vv = (np.concatenate([t[i] for t in trip]) for i in range(3)) if trip else (
             np.zeros(0, int),) * 2 + (np.zeros(0),)
@@ -622,7 +634,8 @@ class JointModel:
             cols_l = np.full((len(j), 6), -1)
         return cols_g, cols_l
 
-    def _motion_rows(self, P, x_l, zK, dz_gyro, dz_dq, att, D, omega, u, du, block, local, sig) -> None:
+    def _motion_rows(self, P, x_l, zK, dz_gyro, dz_dq, att, D, omega, u, du, block, local, sig,
+                     jac: bool = True) -> None:
         m, Pg = self.m, self.glob.size
         cols_g, cols_l = self._gyro_cols(np.arange(m))
         gsel = cols_g >= 0
@@ -634,6 +647,9 @@ class JointModel:
             z = np.vstack([x_l[self.stages.delta[p]], interior, zK[j]])
             W = self.Qk_w[j]  # (K, 2, 2)
             r = np.einsum("kab,kb->ka", W, z[1:] - z[:-1])
+            if not jac:
+                block(r.ravel(), None)
+                continue
             Jg = np.zeros((K, 2, Pg))
             Jg[-1][:, cols_g[gsel]] = (W[-1] @ dz_gyro[j])[:, :15][:, gsel]
             s0 = block(r.ravel(), Jg.reshape(2 * K, Pg))
@@ -653,16 +669,15 @@ class JointModel:
                   (Wl @ dz_gyro[j])[:, 15:])
         if not (self.sampled and len(self.accel.t)):
             return
-        self._sample_rows(P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, cols_l)
+        self._sample_rows(P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, cols_l, jac)
 
-    def _sample_rows(self, P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, cols_l):
+    def _sample_rows(self, P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, cols_l, jac=True):
         acc = self.accel
         k = len(acc.t)
         j = acc.motion
         p, q = self.p[j], self.qr[j]
         Pg, gl, g, S_a = self.glob.size, self.glob.slices, self.g, P["S_a"]
         R = att.rotation_at(self.accel_points)  # (k, 3, 3)
-        Phi = att.sensitivity(D, self.accel_points)  # (k, 3, 21)
         # knot interval and weight
         kidx = np.zeros(k, int)
         mu = np.zeros(k)
@@ -689,14 +704,19 @@ class JointModel:
         nvec, dn = _normalise(u0p + (Bp @ z[:, :, None])[:, :, 0])
         Rt = np.swapaxes(R, 1, 2)  # (stacked matmul: far faster than einsum here)
         ub = (Rt @ nvec[:, :, None])[:, :, 0]  # gravity in the body at the sample
-        Uz = Rt @ dn @ Bp  # d ub / d z  (k, 3, 2)
-        Uphi = Rt @ skew(nvec)  # d ub / d phi (k, 3, 3)
         lam = self.lam_acc[:, None]
         waa, wab = self.walk_states(x_l, "wa")
         walk = (1 - lam) * wab[p] + lam * waa[q]
         f = g * ub
         pred = self.accel_prediction(P, f, acc.t, walk)
         r = (acc.y - pred) @ self.W_sample.T
+        sig.update(pred_accel_motion=pred, gravity_motion=ub)
+        if not jac:
+            block(r.ravel(), None)
+            return
+        Phi = att.sensitivity(D, self.accel_points)  # (k, 3, 21)
+        Uz = Rt @ dn @ Bp  # d ub / d z  (k, 3, 2)
+        Uphi = Rt @ skew(nvec)  # d ub / d phi (k, 3, 3)
         WS = -g * self.W_sample @ S_a  # d r / d ub
         Jg = np.zeros((k, 3, Pg))
         WL = np.einsum("ij,ljm->ilm", self.W_sample, _LOWER)  # (3, 6, 3)
@@ -732,4 +752,3 @@ class JointModel:
                   -(1 - lam)[:, :, None] * self.W_sample)
             local(np.repeat(rows[:, :, None], 3, 2), np.repeat(ca[:, None, :], 3, 1),
                   -lam[:, :, None] * self.W_sample)
-        sig.update(pred_accel_motion=pred, gravity_motion=ub)
