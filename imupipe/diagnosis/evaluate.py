@@ -199,6 +199,7 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
                             f"the unit moved about {moved[j]:.2f} m during this motion (not a rotation "
                             "about a fixed point): its samples are left out, its end-points kept"))
     x_l = first.x_l
+    del first  # its Jacobian: the final fit starts from its solution alone
     if carried.any():
         new = build(sampled[~carried])
         x_l = _remap(model.stages, new.stages, x_l)

@@ -35,8 +35,15 @@ class Linearised:
     J_l: sp.csr_matrix
     iterations: int
     converged: bool
-    system: Bordered = field(repr=False)
     leverage: np.ndarray = field(repr=False, default=None)  # type: ignore[assignment]
+    _system: Bordered | None = field(repr=False, default=None)
+
+    @property
+    def system(self) -> Bordered:
+        """The normal equations at the solution (built on first use)."""
+        if self._system is None:
+            self._system = Bordered(self.J_g, self.J_l, self.model.stages.offsets)
+        return self._system
 
     @property
     def rows(self) -> Rows:
@@ -89,18 +96,8 @@ def fit(model: JointModel, max_iter: int = 30, x_g: np.ndarray | None = None,
     x_g = model.x_g0.copy() if x_g is None else np.asarray(x_g, float)
     x_l = model.x_l0.copy() if x_l is None else np.asarray(x_l, float)
     offsets = model.stages.offsets
-    if fixed_globals:
-        def res(_g, xl):
-            r, Jg, Jl = model.residuals(x_g, xl)
-            return r, Jg[:, :0], Jl
-
-        _, x_l, r, _, J_l, it, ok = solve_least_squares(res, np.zeros(0), x_l, offsets, max_iter=max_iter,
-                                                         tol=tol)
-        r, J_g, J_l = model.residuals(x_g, x_l)
-    else:
-        x_g, x_l, r, J_g, J_l, it, ok = solve_least_squares(model.residuals, x_g, x_l, offsets,
-                                                            max_iter=max_iter, tol=tol)
-    system = Bordered(J_g, J_l, offsets)
-    lin = Linearised(model, x_g, x_l, r, J_g, J_l, it, ok, system)
-    lin.leverage = system.leverage() if leverage else None
+    x_g, x_l, r, J_g, J_l, it, ok = solve_least_squares(model.residuals, x_g, x_l, offsets, max_iter=max_iter,
+                                                        tol=tol, fixed_globals=fixed_globals)
+    lin = Linearised(model, x_g, x_l, r, J_g, J_l, it, ok)
+    lin.leverage = lin.system.leverage() if leverage else None
     return lin

@@ -218,32 +218,36 @@ class Bordered:
 
 
 def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np.ndarray,
-                        max_iter: int = 30, tol: float = 1e-10):
+                        max_iter: int = 30, tol: float = 1e-10, fixed_globals: bool = False):
     """Levenberg-Marquardt on ``residuals(x_g, x_l) -> (r, J_g, J_l)``.
 
     Returns ``(x_g, x_l, r, J_g, J_l, iterations, converged)`` at the optimum. Converged when
     the relative decrease of the cost falls below ``tol``; then one undamped Gauss-Newton step
-    polishes the solution (the damping would otherwise leave it ~1e-8 short).
+    polishes the solution (the damping would otherwise leave it ~1e-8 short). ``fixed_globals``:
+    only the locals move; ``J_g`` is still returned at the optimum.
     """
+    def step(J_g: np.ndarray, J_l: sp.csr_matrix, r: np.ndarray, lam: float) -> tuple[np.ndarray, np.ndarray]:
+        d_g, d_l = Bordered(J_g[:, :0] if fixed_globals else J_g, J_l, offsets, damping=lam).step(r)
+        return (np.zeros(len(x_g)) if fixed_globals else d_g), d_l
+
     r, J_g, J_l = residuals(x_g, x_l)
     cost = float(r @ r)
     lam = 1e-6
     converged = False
     it = 0
     for it in range(1, max_iter + 1):
-        system = Bordered(J_g, J_l, offsets, damping=lam)
-        d_g, d_l = system.step(r)
+        d_g, d_l = step(J_g, J_l, r, lam)
         while True:
             cand_g, cand_l = x_g + d_g, x_l + d_l
             r2, J_g2, J_l2 = residuals(cand_g, cand_l)
             cost2 = float(r2 @ r2)
             if np.isfinite(cost2) and cost2 <= cost:
                 break
+            del r2, J_g2, J_l2
             lam *= 10.0
             if lam > 1e8:
                 return x_g, x_l, r, J_g, J_l, it, converged
-            system = Bordered(J_g, J_l, offsets, damping=lam)
-            d_g, d_l = system.step(r)
+            d_g, d_l = step(J_g, J_l, r, lam)
         decrease = (cost - cost2) / max(cost, 1e-300)
         x_g, x_l, r, J_g, J_l, cost = cand_g, cand_l, r2, J_g2, J_l2, cost2
         lam = max(lam / 10.0, 1e-12)
@@ -251,7 +255,7 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
             converged = True
             break
     if converged:  # an undamped Gauss-Newton step lands on the optimum (quadratic convergence)
-        d_g, d_l = Bordered(J_g, J_l, offsets).step(r)
+        d_g, d_l = step(J_g, J_l, r, 0.0)
         r2, J_g2, J_l2 = residuals(x_g + d_g, x_l + d_l)
         if np.isfinite(r2 @ r2) and float(r2 @ r2) <= cost:
             x_g, x_l, r, J_g, J_l = x_g + d_g, x_l + d_l, r2, J_g2, J_l2
