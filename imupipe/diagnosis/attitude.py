@@ -139,6 +139,9 @@ class Points:
     tau: np.ndarray
     W: sp.csr_matrix
 
+    def subset(self, idx: np.ndarray) -> Points:
+        return Points(self.h[idx], self.tau[idx], self.W[idx])
+
 
 class Quadrature:
     """What integrating the motions needs from the time stamps alone (computed once): the steps

@@ -179,12 +179,12 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
     T = rests.temperature
     thermal = bool(np.all(np.isfinite(T)) and len(T) and np.ptp(T) >= THERMAL_SPAN_C)
 
-    def build(sampled_turns: np.ndarray) -> JointModel:
+    def build(sampled_turns: np.ndarray, like: JointModel | None = None) -> JointModel:
         acc = MotionAccel.select(t_a, y_a, rests, kept)
         acc_keep = np.isin(acc.motion, sampled_turns)
         acc = MotionAccel(acc.t[acc_keep], acc.y[acc_keep], acc.motion[acc_keep])
         return JointModel(rests, kept, gravity, start, noise, fit_k=thermal, accel=acc, knot_s=knot_s,
-                          power_on=power, temperature=temperature)
+                          power_on=power, temperature=temperature, like=like)
 
     sampled = np.arange(len(keep))
     model = build(sampled)
@@ -201,7 +201,7 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
     x_l = first.x_l
     del first  # its Jacobian: the final fit starts from its solution alone
     if carried.any():
-        new = build(sampled[~carried])
+        new = build(sampled[~carried], like=model)
         x_l = _remap(model.stages, new.stages, x_l)
         model = new
     lin = fit(model, max_iter=max_iter, x_l=x_l, fixed_globals=not refit, tol=FIT_TOL)

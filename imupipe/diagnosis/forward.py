@@ -52,7 +52,7 @@ from ..models import T_REF_C
 from ..observations import Rests, Turns
 from ..rotations import skew
 from ..solvers.triad_covariance import shape_basis
-from .attitude import Attitude, MotionSamples, Quadrature
+from .attitude import Attitude, MotionSamples, Points, Quadrature
 
 _LOWER = shape_basis("lower")  # (6, 3, 3)
 BLOCKS = ("accel_rest", "gyro_rest", "walk_gyro", "walk_accel", "turn", "accel_motion", "k_prior")
@@ -224,13 +224,15 @@ class JointModel:
     inside the motions (per-sample mode) or None (rest means and turn end-points only);
     ``knot_s``: spacing of the attitude-error knots in per-sample mode; ``power_on`` (n,) bool:
     rest i starts a new power cycle (the walks restart free); ``temperature``: (t, T) arrays
-    for temperatures inside motions (default: the rests' interpolated in time).
+    for temperatures inside motions (default: the rests' interpolated in time). ``like``: a
+    model of the same rests and turns whose quadrature (and, for a subset of its motion
+    samples, their integration weights) this one reuses.
     """
 
     def __init__(self, rests: Rests, turns: Turns, gravity: float, start: Start, noise: Noise,
                  fit_k: bool = False, accel: MotionAccel | None = None, knot_s: float = 0.25,
                  power_on: np.ndarray | None = None,
-                 temperature: tuple[np.ndarray, np.ndarray] | None = None):
+                 temperature: tuple[np.ndarray, np.ndarray] | None = None, like: JointModel | None = None):
         n, m = len(rests), len(turns)
         if n < 1:
             raise SolverError("the joint model needs at least one rest")
@@ -257,8 +259,11 @@ class JointModel:
         self.W_a = _whiteners(self.rest_cov(rests, "accel"))
         self.W_g = _whiteners(self.rest_cov(rests, "gyro"))
         # ---- motions
-        self.motions = MotionSamples.from_turns(turns.t, turns.gyro)
-        self.quad = Quadrature(self.motions)
+        if like is not None:
+            self.motions, self.quad = like.motions, like.quad
+        else:
+            self.motions = MotionSamples.from_turns(turns.t, turns.gyro)
+            self.quad = Quadrature(self.motions)
         ms = self.motions
         self.p, self.qr = np.asarray(turns.before, int), np.asarray(turns.after, int)
         self.dT_gyro = self.temperature_at(ms.t) - T_REF_C
@@ -268,7 +273,7 @@ class JointModel:
         self.accel = accel if accel is not None else MotionAccel(np.zeros(0), np.zeros((0, 3)),
                                                                  np.zeros(0, np.int64))
         self.dT_acc = self.temperature_at(self.accel.t) - T_REF_C
-        self.accel_points = self.quad.points(self.accel.t, self.accel.motion)
+        self.accel_points = self._points(like)
         self.lam_acc = self._walk_fraction(self.accel.t, self.accel.motion, gap_start, gap_len)
         self.W_sample = _whiteners(noise.accel_sample)
         # ---- knots: (m,) intervals per motion, their times
@@ -300,6 +305,19 @@ class JointModel:
         self.rows = self._rows()
 
     # ------------------------------------------------------------------ helpers
+    def _points(self, like: JointModel | None) -> Points:
+        """The motion samples' integration weights; a subset of ``like``'s rows when its samples
+        hold ours (the weights are computed row by row, so the subset is exact)."""
+        acc = self.accel
+        if like is not None and len(acc.t) <= len(like.accel.t):
+            key = like.accel.motion * 1e9 + like.accel.t  # motions, then times: sorted
+            idx = np.searchsorted(key, acc.motion * 1e9 + acc.t)
+            idx = np.minimum(idx, max(len(key) - 1, 0))
+            if len(key) and np.array_equal(like.accel.t[idx], acc.t) and \
+                    np.array_equal(like.accel.motion[idx], acc.motion):
+                return like.accel_points.subset(idx)
+        return self.quad.points(acc.t, acc.motion)
+
     def rest_cov(self, rests: Rests, sensor: str) -> np.ndarray:
         """(n, 3, 3) covariance of each rest's mean reading about the model's: the samples'
         noise averaged, plus the bias walk's wander about its mean over the rest (a Brownian
