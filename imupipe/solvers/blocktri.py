@@ -134,6 +134,56 @@ class BlockTridiagonal:
             Zd[i] = 0.5 * (Zd[i] + Zd[i].T)
         return Zd, Zl
 
+    def row_forms(self, J: sp.csr_matrix, chunk: int = 8192) -> np.ndarray:
+        """(N,) ``diag(J A^-1 J^T)`` for a sparse ``J`` whose rows touch two consecutive stages
+        at most, from the selected inverse: per row, the quadratic form of its few entries with
+        the inverse's block on their columns. Consecutive rows on the same columns (the samples
+        of one knot interval) share that block; nothing of size N x q is formed."""
+        J = sp.csr_matrix(J)
+        if not J.has_canonical_format:
+            J = J.copy()
+            J.sum_duplicates()
+        N = J.shape[0]
+        counts = np.diff(J.indptr)
+        if not N or not J.nnz:
+            return np.zeros(N)
+        Zd, Zl = self.selected_inverse()
+        o = self.offsets
+        n = np.diff(o)
+        width = int(counts.max())
+        row = np.repeat(np.arange(N), counts)
+        pos = np.arange(J.nnz) - J.indptr[row]
+        cols = np.full((N, width), -1, np.int64)
+        vals = np.zeros((N, width))
+        cols[row, pos] = J.indices
+        vals[row, pos] = J.data
+        start = np.r_[True, np.any(cols[1:] != cols[:-1], axis=1)]
+        run = np.cumsum(start) - 1
+        c = cols[start]  # (R, width) the columns of each run of rows
+        # the inverse's entries on each run's column pairs, from the stage blocks
+        flat_d = np.concatenate([z.ravel() for z in Zd]) if Zd else np.zeros(0)
+        flat_l = np.concatenate([z.ravel() for z in Zl] + [np.zeros(0)])
+        base_d = np.r_[0, np.cumsum([z.size for z in Zd])][:-1].astype(np.int64)
+        base_l = np.r_[0, np.cumsum([z.size for z in Zl])].astype(np.int64)
+        stage = np.searchsorted(o, np.maximum(c, 0), "right") - 1
+        within = np.maximum(c, 0) - o[stage]
+        s1, s2 = stage[:, :, None], stage[:, None, :]
+        w1, w2 = within[:, :, None], within[:, None, :]
+        real = (c[:, :, None] >= 0) & (c[:, None, :] >= 0)
+        Zr = np.zeros((len(c), width, width))
+        m = real & (s1 == s2)
+        Zr[m] = flat_d[(base_d[s1] + w1 * n[s1] + w2)[m]]
+        m = real & (s1 == s2 + 1)  # block (s2 + 1, s2) = Zl[s2], shape (n[s2 + 1], n[s2])
+        Zr[m] = flat_l[(base_l[np.maximum(s2, 0)] + w1 * n[np.maximum(s2, 0)] + w2)[m]]
+        m = real & (s2 == s1 + 1)  # its transpose
+        Zr[m] = flat_l[(base_l[np.maximum(s1, 0)] + w2 * n[np.maximum(s1, 0)] + w1)[m]]
+        out = np.empty(N)
+        for a in range(0, N, chunk):
+            b = min(a + chunk, N)
+            v = vals[a:b, :, None]
+            out[a:b] = (np.swapaxes(v, 1, 2) @ (Zr[run[a:b]] @ v))[:, 0, 0]
+        return out
+
     def selected_sparse(self) -> sp.csr_matrix:
         """``selected_inverse`` as a sparse symmetric (N, N) matrix (zero outside the pattern)."""
         Zd, Zl = self.selected_inverse()
@@ -207,9 +257,8 @@ class Bordered:
     def leverage(self) -> np.ndarray:
         """(N,) ``diag(J A^-1 J^T)``, exact: ``a^T A_ll^-1 a + (g - X^T a)^T S^-1 (g - X^T a)``
         per row, the first term from the selected inverse (rows touch two stages at most)."""
-        Z = self.blocks.selected_sparse()
         J_l = self.J_l
-        local = np.asarray((J_l @ Z).multiply(J_l).sum(axis=1)).ravel()
+        local = self.blocks.row_forms(J_l)
         Gt = self.J_g - np.asarray(J_l @ self.X)
         if not len(self.S):
             return local
