@@ -572,6 +572,12 @@ class JointModel:
             keep = cols >= 0
             trip.append((rows[keep].ravel(), cols[keep].ravel(), vals[keep].ravel()))
 
+        def flat(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray) -> None:  # (entries kept)
+            if jacobian:
+                trip.append((rows, cols, vals))
+
+        local.flat = flat
+
         zK, dz_gyro, dz_dq, att, D, omega, u, du = self._endpoints(P, x_l, jacobian) if self.m else \
             (None,) * 6 + self.gravity(x_l)
         wga, wgb = self.walk_states(x_l, "wg")
@@ -689,14 +695,18 @@ class JointModel:
             return
         self._sample_rows(P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, cols_l, jac)
 
-    def _sample_rows(self, P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, cols_l, jac=True):
+    def _sample_layout(self, cols_l: np.ndarray) -> dict[str, np.ndarray]:
+        """What the motion samples' rows need that does not change between evaluations (kept):
+        each sample's knot interval ``kidx`` and weight ``mu``, and the local columns of its
+        row's entries (k, 16): the knot (or rest direction) before and after it (2 each), the
+        gyro walk at the motion's ends (6), the accelerometer walk at them (6); -1 for none."""
+        lay = self.__dict__.get("_layout")
+        if lay is not None:
+            return lay
         acc = self.accel
         k = len(acc.t)
         j = acc.motion
         p, q = self.p[j], self.qr[j]
-        Pg, gl, g, S_a = self.glob.size, self.glob.slices, self.g, P["S_a"]
-        R = att.rotation_at(self.accel_points)  # (k, 3, 3)
-        # knot interval and weight
         kidx = np.zeros(k, int)
         mu = np.zeros(k)
         for jj in np.unique(j):
@@ -705,6 +715,34 @@ class JointModel:
             ki = np.clip(np.searchsorted(kt, acc.t[sel], "right") - 1, 0, self.K[jj] - 1)
             kidx[sel] = ki
             mu[sel] = np.clip((acc.t[sel] - kt[ki]) / (kt[ki + 1] - kt[ki]), 0, 1)
+        Kj = self.K[j]
+        ks = self.stages.knot_start[p]
+        delta = self.stages.delta
+        cols = np.full((k, 16), -1, np.int64)
+        cols[:, 0:2] = np.where((kidx == 0)[:, None], delta[p], (ks + 2 * (kidx - 1))[:, None] + np.arange(2))
+        last = kidx + 1 == Kj  # the knot after is the end-point, a function of the next rest's direction
+        cols[:, 2:4] = np.where(last[:, None], delta[q], (ks + 2 * kidx)[:, None] + np.arange(2))
+        cols[:, 4:10] = cols_l[j]
+        if "wa" in self.walks:
+            a, b = self.stages.walk_cols["wa"]
+            cols[:, 10:13] = b[p][:, None] + np.arange(3)
+            cols[:, 13:16] = np.where(a[q][:, None] >= 0, a[q][:, None] + np.arange(3), -1)
+        keep = np.broadcast_to((cols >= 0)[:, None, :], (k, 3, 16))
+        lay = {"kidx": kidx, "mu": mu, "last": last, "where_last": np.flatnonzero(last), "keep": keep,
+               "cols": np.broadcast_to(cols[:, None, :], (k, 3, 16))[keep],
+               "rows": np.broadcast_to((3 * np.arange(k)[:, None] + np.arange(3))[:, :, None], (k, 3, 16))[keep]}
+        self.__dict__["_layout"] = lay
+        return lay
+
+    def _sample_rows(self, P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, cols_l, jac=True):
+        acc = self.accel
+        k = len(acc.t)
+        j = acc.motion
+        p, q = self.p[j], self.qr[j]
+        Pg, gl, g, S_a = self.glob.size, self.glob.slices, self.g, P["S_a"]
+        R = att.rotation_at(self.accel_points)  # (k, 3, 3)
+        lay = self._sample_layout(cols_l)
+        kidx, mu = lay["kidx"], lay["mu"]
         Kj = self.K[j]
         ks = self.stages.knot_start[p]
 
@@ -744,29 +782,23 @@ class JointModel:
             Jg[:, :, gl["k_a"]] = -self.W_sample * self.dT_acc[:, None, None]
         dr_dz = WS @ Uz  # (k, 3, 2)
         dr_gyro = (WS @ Uphi) @ Phi  # (k, 3, 21)
-        at_end = kidx + 1 == Kj
+        del Phi, Uphi
+        at_end = lay["where_last"]
         dr_gyro[at_end] += mu[at_end, None, None] * np.einsum("kia,kap->kip", dr_dz[at_end], dz_gyro[j[at_end]])
-        gsel = cols_g >= 0
-        Jg[:, :, cols_g[gsel]] += dr_gyro[:, :, :15][:, :, gsel]
+        # M_g and b_g are adjacent columns, k_g apart (cols_g: their 15, -1 where absent)
+        assert np.array_equal(cols_g[:12], np.arange(gl["M_g"].start, gl["b_g"].stop))
+        Jg[:, :, gl["M_g"].start:gl["b_g"].stop] = dr_gyro[:, :, :12]
+        if self.fit_k:
+            Jg[:, :, gl["k_g"]] = dr_gyro[:, :, 12:15]
         s0 = block(r.ravel(), Jg.reshape(3 * k, Pg))
-        rows = s0 + 3 * np.arange(k)[:, None] + np.arange(3)
-        rows2 = np.repeat(rows[:, :, None], 2, 2)
-        for idx, wgt in ((kidx, 1 - mu), (kidx + 1, mu)):
-            first, last = idx == 0, idx == Kj
-            mid = ~first & ~last
-            vals = wgt[:, None, None] * dr_dz
-            local(rows2[first], np.repeat(self.stages.delta[p[first]][:, None, :], 3, 1), vals[first])
-            mc = (ks[mid] + 2 * (idx[mid] - 1))[:, None] + np.arange(2)
-            local(rows2[mid], np.repeat(mc[:, None, :], 3, 1), vals[mid])
-            dq = np.einsum("kia,kab->kib", vals[last], dz_dq[j[last]])
-            local(rows2[last], np.repeat(self.stages.delta[q[last]][:, None, :], 3, 1), dq)
-        cl = cols_l[j]  # (k, 6)
-        local(np.repeat(rows[:, :, None], 6, 2), np.repeat(cl[:, None, :], 3, 1), dr_gyro[:, :, 15:])
+        vals = np.zeros((k, 3, 16))
+        vals[:, :, 0:2] = (1 - mu)[:, None, None] * dr_dz
+        hi = mu[:, None, None] * dr_dz
+        end = lay["where_last"]
+        hi[end] = np.einsum("kia,kab->kib", hi[end], dz_dq[j[end]])
+        vals[:, :, 2:4] = hi
+        vals[:, :, 4:10] = dr_gyro[:, :, 15:]
         if "wa" in self.walks:
-            a, b = self.stages.walk_cols["wa"]
-            cb = b[p][:, None] + np.arange(3)
-            ca = np.where(a[q][:, None] >= 0, a[q][:, None] + np.arange(3), -1)
-            local(np.repeat(rows[:, :, None], 3, 2), np.repeat(cb[:, None, :], 3, 1),
-                  -(1 - lam)[:, :, None] * self.W_sample)
-            local(np.repeat(rows[:, :, None], 3, 2), np.repeat(ca[:, None, :], 3, 1),
-                  -lam[:, :, None] * self.W_sample)
+            vals[:, :, 10:13] = -(1 - lam)[:, :, None] * self.W_sample
+            vals[:, :, 13:16] = -lam[:, :, None] * self.W_sample
+        local.flat(s0 + lay["rows"], lay["cols"], vals[lay["keep"]])
