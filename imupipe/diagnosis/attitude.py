@@ -66,7 +66,10 @@ def segmented_cumsum(x: np.ndarray, seg: np.ndarray) -> np.ndarray:
     c = np.cumsum(x, axis=0)
     first = np.r_[True, seg[1:] != seg[:-1]]
     start = np.maximum.accumulate(np.where(first, np.arange(len(seg)), 0))
-    return c - (c[start] - x[start])  # minus the running sum before each run's first element
+    before = c[start]
+    before -= x[start]
+    c -= before  # minus the running sum before each run's first element
+    return c
 
 
 def _integrals(t: np.ndarray, motion: np.ndarray, s: np.ndarray, tau: np.ndarray,
@@ -223,12 +226,16 @@ class Attitude:
         return C @ (self.quad.A @ D.reshape(len(D), 3 * P)).reshape(-1, 3, P)
 
     def _steps_and_sums(self, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``_per_step(D)`` and its running sums within each motion, kept for the last ``D``
-        (the end-points and the samples of one residual evaluation share them)."""
+        """The running sums of ``_per_step(D)`` within each motion before each step (S, 3, P) and
+        through each motion's last step (m', 3, P), kept for the last ``D`` (the end-points and
+        the samples of one residual evaluation share them)."""
         memo = self.__dict__.get("_memo")
         if memo is None or memo[0] is not D:
             per = self._per_step(D)
-            memo = (D, per, segmented_cumsum(per, self.quad.seg))
+            cum = segmented_cumsum(per, self.quad.seg)
+            last = cum[self.quad.last]
+            cum -= per
+            memo = (D, cum, last)
             object.__setattr__(self, "_memo", memo)
         return memo[1], memo[2]
 
@@ -239,17 +246,18 @@ class Attitude:
         k = len(pts.h)
         if not k or not len(self.a):
             return np.zeros((k, 3, P))
-        per, cum = self._steps_and_sums(D)
+        before_step, _ = self._steps_and_sums(D)
         hh = np.maximum(pts.h, 0)
-        ok = (pts.h >= 0)[:, None, None]
-        before = np.where(ok, cum[hh] - per[hh], 0.0)
+        out = before_step[hh]
         part = self.R_before[hh] @ left_jacobian(pts.W @ self.omega)
         part = part @ (pts.W @ D.reshape(len(D), 3 * P)).reshape(k, 3, P)
-        return before + np.where(ok, part, 0.0)
+        out += part
+        out[pts.h < 0] = 0.0
+        return out
 
     def end_sensitivity(self, D: np.ndarray) -> np.ndarray:
         """(m, 3, P) the same at each motion's last sample (zeros for motions without steps)."""
         out = np.zeros((self.quad.samples.count, 3, D.shape[2]))
         if len(self.a):
-            out[self.quad.seg[self.quad.last]] = self._steps_and_sums(D)[1][self.quad.last]
+            out[self.quad.seg[self.quad.last]] = self._steps_and_sums(D)[1]
         return out
