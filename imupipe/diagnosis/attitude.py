@@ -60,16 +60,16 @@ def segmented_scan(q: np.ndarray, seg: np.ndarray) -> np.ndarray:
 
 
 def segmented_cumsum(x: np.ndarray, seg: np.ndarray) -> np.ndarray:
-    """Inclusive cumulative sums of ``x`` (n, ...) along axis 0 restarting at each new ``seg``."""
+    """Inclusive cumulative sums of ``x`` (n, ...) along axis 0 restarting at each new ``seg``
+    (one cumulative sum per run: no running sum carried across runs, which would cost a
+    gather and a subtraction of the whole array and lose digits)."""
+    out = np.empty_like(x)
     if not len(x):
-        return x.copy()
-    c = np.cumsum(x, axis=0)
-    first = np.r_[True, seg[1:] != seg[:-1]]
-    start = np.maximum.accumulate(np.where(first, np.arange(len(seg)), 0))
-    before = c[start]
-    before -= x[start]
-    c -= before  # minus the running sum before each run's first element
-    return c
+        return out
+    bounds = np.flatnonzero(np.r_[True, seg[1:] != seg[:-1], True])
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        np.cumsum(x[a:b], axis=0, out=out[a:b])
+    return out
 
 
 def _integrals(t: np.ndarray, motion: np.ndarray, s: np.ndarray, tau: np.ndarray,
