@@ -102,6 +102,33 @@ def _integrals(t: np.ndarray, motion: np.ndarray, s: np.ndarray, tau: np.ndarray
 
 
 @dataclass(frozen=True)
+class RateDerivatives:
+    """(N, 3, P) derivatives of N calibrated rates w.r.t. P parameters, held as ``coef`` (N, B)
+    times ``basis`` (B, 3, P) with B small (a rate is linear in a few per-sample quantities):
+    weighted sums over samples then cost B columns, not 3 P."""
+
+    coef: np.ndarray
+    basis: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (len(self.coef), *self.basis.shape[1:])
+
+    def __len__(self) -> int:
+        return len(self.coef)
+
+    def dense(self) -> np.ndarray:
+        return (self.coef @ self.basis.reshape(len(self.basis), -1)).reshape(self.shape)
+
+
+def weighted(W: sp.spmatrix, D: np.ndarray | RateDerivatives) -> np.ndarray:
+    """(k, 3, P) ``sum_n W[:, n] D[n]`` for rate derivatives ``D`` (N, 3, P), dense or factored."""
+    if isinstance(D, RateDerivatives):
+        return ((W @ D.coef) @ D.basis.reshape(len(D.basis), -1)).reshape(W.shape[0], 3, -1)
+    return (W @ D.reshape(len(D), -1)).reshape(W.shape[0], 3, -1)
+
+
+@dataclass(frozen=True)
 class MotionSamples:
     """The gyro samples of m motions, flattened: ``t`` (N,) s, ``y`` (N, 3) raw gyro, ``motion``
     (N,) motion index (sorted, times increasing within each). ``origin``/``end`` (m,) s: each
@@ -223,7 +250,7 @@ class Attitude:
         """(S, 3, P) each step's attitude change per unit parameter change, start frame."""
         P = D.shape[2]
         C = self.R_before @ left_jacobian(self.a)
-        return C @ (self.quad.A @ D.reshape(len(D), 3 * P)).reshape(-1, 3, P)
+        return C @ weighted(self.quad.A, D)
 
     def _steps_and_sums(self, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The running sums of ``_per_step(D)`` within each motion before each step (S, 3, P) and
@@ -250,7 +277,7 @@ class Attitude:
         hh = np.maximum(pts.h, 0)
         out = before_step[hh]
         part = self.R_before[hh] @ left_jacobian(pts.W @ self.omega)
-        part = part @ (pts.W @ D.reshape(len(D), 3 * P)).reshape(k, 3, P)
+        part = part @ weighted(pts.W, D)
         out += part
         out[pts.h < 0] = 0.0
         return out

@@ -52,7 +52,7 @@ from ..models import T_REF_C
 from ..observations import Rests, Turns
 from ..rotations import skew
 from ..solvers.triad_covariance import shape_basis
-from .attitude import Attitude, MotionSamples, Points, Quadrature
+from .attitude import Attitude, MotionSamples, Points, Quadrature, RateDerivatives
 
 _LOWER = shape_basis("lower")  # (6, 3, 3)
 BLOCKS = ("accel_rest", "gyro_rest", "walk_gyro", "walk_accel", "turn", "accel_motion", "k_prior")
@@ -387,10 +387,10 @@ class JointModel:
         u, du = _normalise(self.u0 + np.einsum("nij,nj->ni", self.B, d))
         return u, du @ self.B
 
-    def _rates(self, P: dict, x_l: np.ndarray, derivatives: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    def _rates(self, P: dict, x_l: np.ndarray, derivatives: bool = True) -> tuple[np.ndarray, RateDerivatives | None]:
         """Calibrated rates (N, 3) of the motions' gyro samples and their derivatives (N, 3, 21)
-        w.r.t. (M_g (9), b_g (3), k_g (3), walk at the motion's start (3), at its end (3));
-        ``derivatives=False``: None for them."""
+        w.r.t. (M_g (9), b_g (3), k_g (3), walk at the motion's start (3), at its end (3)),
+        factored (``attitude.RateDerivatives``); ``derivatives=False``: None for them."""
         ms = self.motions
         N = len(ms)
         wa, wb = self.walk_states(x_l, "wg")
@@ -401,14 +401,14 @@ class JointModel:
         omega = e @ P["M_g"].T
         if not derivatives:
             return omega, None
-        D = np.zeros((N, 3, 21))
-        for i in range(3):
-            D[:, i, 3 * i:3 * i + 3] = e
-        D[:, :, 9:12] = -P["M_g"]
-        D[:, :, 12:15] = -P["M_g"] * self.dT_gyro[:, None, None]
-        D[:, :, 15:18] = -P["M_g"] * (1 - lam)[:, :, None]
-        D[:, :, 18:21] = -P["M_g"] * lam[:, :, None]
-        return omega, D
+        # d omega / d M_g[i, c] = e_c along axis i; the rest is -M_g times 1, dT, 1 - lam, lam
+        basis = np.zeros((7, 3, 21))
+        for c in range(3):
+            basis[c, np.arange(3), 3 * np.arange(3) + c] = 1.0
+        for b in range(4):
+            basis[3 + b, :, 9 + 3 * b:12 + 3 * b] = -P["M_g"]
+        coef = np.column_stack([e, np.ones(N), self.dT_gyro, 1 - lam[:, 0], lam[:, 0]])
+        return omega, RateDerivatives(coef, basis)
 
     def _knot_whiteners(self) -> list[np.ndarray]:
         """Per motion, (K_j, 2, 2) whiteners of the attitude-path increments: the gyro's white noise
@@ -554,17 +554,23 @@ class JointModel:
         n, g, gl = self.n, self.g, self.glob.slices
         Pg, Pl = self.glob.size, self.stages.size
         S_a = P["S_a"]
-        r_parts, Jg_parts, trip = [], [], []
+        r_parts, trip = [], []
         row0 = 0
+        # the globals' Jacobian is written in place, block by block (no stacked copy)
+        J_g = np.zeros((len(self.rows.block), Pg)) if jacobian else None
 
         def block(r: np.ndarray, Jg: np.ndarray | None) -> int:
+            """Append rows ``r`` and their ``Jg`` (None: zero, or already written through
+            ``block.reserve``); returns their first row."""
             nonlocal row0
             r_parts.append(r)
-            if jacobian:
-                Jg_parts.append(Jg)
+            if jacobian and Jg is not None:
+                J_g[row0:row0 + len(r)] = Jg
             start = row0
             row0 += len(r)
             return start
+
+        block.reserve = lambda n: J_g[row0:row0 + n]  # the next n rows' J_g, to fill in place
 
         def local(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray) -> None:
             if not jacobian:
@@ -572,9 +578,11 @@ class JointModel:
             keep = cols >= 0
             trip.append((rows[keep].ravel(), cols[keep].ravel(), vals[keep].ravel()))
 
-        def flat(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray) -> None:  # (entries kept)
+        def flat(where, vals: np.ndarray) -> None:
+            """Entries ``vals`` (kept ones only) whose rows and columns ``where()`` returns (a
+            constant pattern: asked for only until the model knows J_l's sparsity)."""
             if jacobian:
-                trip.append((rows, cols, vals))
+                trip.append((where, None, vals))
 
         local.flat = flat
 
@@ -620,13 +628,14 @@ class JointModel:
             sq = np.sqrt(self.q[w][None, :] * dts[:, None])  # (k, 3)
             xn = x_l[nxt[:, None] + np.arange(3)]
             xp = np.where(prev[:, None] >= 0, x_l[np.maximum(prev, 0)[:, None] + np.arange(3)], 0.0)
-            s0 = block(((xn - xp) / sq).ravel(), np.zeros((3 * k, Pg)))
+            s0 = block(((xn - xp) / sq).ravel(), None)
             rows = s0 + 3 * np.arange(k)[:, None] + np.arange(3)
             local(rows, nxt[:, None] + np.arange(3), 1.0 / sq)
             local(rows, np.where(prev[:, None] >= 0, prev[:, None] + np.arange(3), -1), -1.0 / sq)
         sig = {"pred_accel_rest": pred_a, "pred_gyro_rest": pred_g, "gravity_rest": u}
         if self.m:
             self._motion_rows(P, x_l, zK, dz_gyro, dz_dq, att, D, omega, u, du, block, local, sig, jacobian)
+        del att, D  # the attitude's sensitivities: not needed past the motions' rows
         # ---- temperature-coefficient prior
         if len(self.k_prior):
             k_all = np.concatenate([P["k_a"], P["k_g"]])
@@ -637,11 +646,31 @@ class JointModel:
         r = np.concatenate(r_parts)
         if not jacobian:
             return (r, None, None, sig) if signals else (r, None, None)
-        J_g = np.vstack(Jg_parts)
-        rr, cc, vv = (np.concatenate([t[i] for t in trip]) for i in range(3)) if trip else (
-            np.zeros(0, int),) * 2 + (np.zeros(0),)
-        J_l = sp.csr_matrix((vv, (rr, cc)), shape=(len(r), Pl))
+        if len(r) != len(J_g):
+            raise AssertionError("row metadata and residual rows disagree")
+        vv = np.concatenate([t[2] for t in trip]) if trip else np.zeros(0)
+        J_l = self._local_jacobian(trip, vv, len(r), Pl)
         return (r, J_g, J_l, sig) if signals else (r, J_g, J_l)
+
+    def _local_jacobian(self, trip: list, vv: np.ndarray, N: int, Pl: int) -> sp.csr_matrix:
+        """J_l (N, Pl) CSR from the entries' values ``vv``. Its sparsity does not change between
+        evaluations: the first one sorts the entries into CSR order and keeps that order (when no
+        entry repeats a row and column), later ones only permute the values."""
+        pat = self.__dict__.get("_jl_pattern")
+        if pat is None or pat[0] != len(vv):
+            rc = [t[0]() if t[1] is None else (t[0], t[1]) for t in trip]
+            rr = np.concatenate([x[0] for x in rc]) if rc else np.zeros(0, np.int64)
+            cc = np.concatenate([x[1] for x in rc]) if rc else np.zeros(0, np.int64)
+            order = np.lexsort((cc, rr))
+            rs, cs = rr[order], cc[order]
+            if len(rs) > 1 and np.any((rs[1:] == rs[:-1]) & (cs[1:] == cs[:-1])):  # repeats add up
+                return sp.csr_matrix((vv, (rr, cc)), shape=(N, Pl))
+            idx = np.int32 if max(N, Pl, len(vv)) < 2**31 else np.int64
+            indptr = np.r_[0, np.cumsum(np.bincount(rs, minlength=N))].astype(idx)
+            pat = (len(vv), order.astype(idx), cs.astype(idx), indptr)
+            self.__dict__["_jl_pattern"] = pat
+        _, order, indices, indptr = pat
+        return sp.csr_matrix((vv[order], indices, indptr), shape=(N, Pl))
 
     def _gyro_cols(self, j: np.ndarray) -> tuple[list[tuple[str | None, np.ndarray]], np.ndarray]:
         """Where the 21 rate-derivative columns of motions ``j`` go: globals M_g, b_g, [k_g], and
@@ -728,9 +757,7 @@ class JointModel:
             cols[:, 10:13] = b[p][:, None] + np.arange(3)
             cols[:, 13:16] = np.where(a[q][:, None] >= 0, a[q][:, None] + np.arange(3), -1)
         keep = np.broadcast_to((cols >= 0)[:, None, :], (k, 3, 16))
-        lay = {"kidx": kidx, "mu": mu, "last": last, "where_last": np.flatnonzero(last), "keep": keep,
-               "cols": np.broadcast_to(cols[:, None, :], (k, 3, 16))[keep],
-               "rows": np.broadcast_to((3 * np.arange(k)[:, None] + np.arange(3))[:, :, None], (k, 3, 16))[keep]}
+        lay = {"kidx": kidx, "mu": mu, "where_last": np.flatnonzero(last), "keep": keep, "cols": cols}
         self.__dict__["_layout"] = lay
         return lay
 
@@ -774,7 +801,7 @@ class JointModel:
         Uz = Rt @ dn @ Bp  # d ub / d z  (k, 3, 2)
         Uphi = Rt @ skew(nvec)  # d ub / d phi (k, 3, 3)
         WS = -g * self.W_sample @ S_a  # d r / d ub
-        Jg = np.zeros((k, 3, Pg))
+        Jg = block.reserve(3 * k).reshape(k, 3, Pg)
         WL = np.einsum("ij,ljm->ilm", self.W_sample, _LOWER)  # (3, 6, 3)
         Jg[:, :, gl["S_a"]] = -(f @ WL.reshape(-1, 3).T).reshape(k, 3, -1)
         Jg[:, :, gl["b_a"]] = -self.W_sample
@@ -790,7 +817,7 @@ class JointModel:
         Jg[:, :, gl["M_g"].start:gl["b_g"].stop] = dr_gyro[:, :, :12]
         if self.fit_k:
             Jg[:, :, gl["k_g"]] = dr_gyro[:, :, 12:15]
-        s0 = block(r.ravel(), Jg.reshape(3 * k, Pg))
+        s0 = block(r.ravel(), None)  # its J_g is written
         vals = np.zeros((k, 3, 16))
         vals[:, :, 0:2] = (1 - mu)[:, None, None] * dr_dz
         hi = mu[:, None, None] * dr_dz
@@ -801,4 +828,10 @@ class JointModel:
         if "wa" in self.walks:
             vals[:, :, 10:13] = -(1 - lam)[:, :, None] * self.W_sample
             vals[:, :, 13:16] = -lam[:, :, None] * self.W_sample
-        local.flat(s0 + lay["rows"], lay["cols"], vals[lay["keep"]])
+        keep = lay["keep"]
+
+        def where() -> tuple[np.ndarray, np.ndarray]:
+            rows = np.broadcast_to((s0 + 3 * np.arange(k)[:, None] + np.arange(3))[:, :, None], (k, 3, 16))
+            return rows[keep], np.broadcast_to(lay["cols"][:, None, :], (k, 3, 16))[keep]
+
+        local.flat(where, vals[keep])
