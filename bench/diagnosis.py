@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from imupipe.diagnosis.select import NONCENTRALITY_80
+from imupipe.diagnosis.select import EARTH_RATE, NONCENTRALITY_80
 from imupipe.pipeline.api import run_sessions
 from imupipe.sim.api import simulate
 
@@ -46,6 +46,7 @@ def effect_params(effect: str, a: float) -> dict:
         "accel_scale_temperature": lambda: {"ppm_per_C": list(a * UNIT)},
         "gyro_g_sensitivity": lambda: {"G": (a * G_DIR).tolist()},
         "bias_temperature_nonlinear": lambda: {"k2_per_C2": list(a * UNIT), "sensor": "gyro"},
+        "earth_rotation": lambda: {"latitude_deg": float(np.degrees(np.arcsin(min(a / EARTH_RATE, 1.0))))},
     }[effect]()
 
 
@@ -54,17 +55,19 @@ def fitted_size(effect: str, params: dict) -> float:
         return float(params["dt_s"])
     if effect == "gyro_g_sensitivity":
         return float(np.sum(np.asarray(params["G"]) * G_DIR))
+    if effect == "earth_rotation":  # the vertical rate Omega sin(lat)
+        return EARTH_RATE * float(np.sin(np.radians(params["latitude_deg"])))
     key = {"lever_arm": "r_m", "accel_nonlinearity": "k2", "accel_scale_temperature": "ppm_per_C",
            "bias_temperature_nonlinear": "k2_per_C2"}[effect]
     return float(np.asarray(params[key]) @ UNIT)
 
 
-SENSOR = {"gyro_g_sensitivity": "gyro", "bias_temperature_nonlinear": "gyro"}
+SENSOR = {"gyro_g_sensitivity": "gyro", "bias_temperature_nonlinear": "gyro", "earth_rotation": "gyro"}
 
 
 def direction(effect: str) -> np.ndarray:
     """The unit direction of ``effect_params`` in the term's parameters (the information's axes)."""
-    if effect == "accel_gyro_time_offset":
+    if effect in ("accel_gyro_time_offset", "earth_rotation"):
         return np.ones(1)
     if effect == "gyro_g_sensitivity":
         return G_DIR.ravel()
@@ -118,6 +121,7 @@ def one_seed(args: tuple[str, int, list[str], float, str]) -> dict:
             "wrong": [f["effect"] for f in doc["findings"] if f["effect"] not in (e, "unknown")],
             "top_cell_right": bool(top and top["sensor"] == SENSOR.get(e, "accel")
                                    and top["regime"] in (regime, "all")),
+            "top_cell": top and f"{top['sensor']}/{top['regime']}/{top['variable']}/{'-'.join(top['axes'])}",
             "fitted_over_true": fitted_size(e, named[0]["parameters"]) / a if named else None,
             "heldout_ratio": (named[0]["heldout_rms_after"] / named[0]["heldout_rms_before"]) if named else None,
             "seconds": doc["seconds"],
@@ -163,7 +167,7 @@ def main() -> None:
     ap.add_argument("--protocols", nargs="+", default=["gimbal", "standard"])
     ap.add_argument("--effects", nargs="+", default=["lever_arm", "accel_gyro_time_offset", "accel_nonlinearity",
                                                      "accel_scale_temperature", "gyro_g_sensitivity",
-                                                     "bias_temperature_nonlinear"])
+                                                     "bias_temperature_nonlinear", "earth_rotation"])
     ap.add_argument("--factor", type=float, default=5.0)
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--out", type=Path, default=None)

@@ -106,6 +106,47 @@ class Calibration:
         except KeyError:
             raise SchemaError(f"no {sensor} calibration; this one has {', '.join(self.triads) or 'none'}") from None
 
+    @property
+    def model_terms(self) -> list[dict[str, Any]]:
+        """The extra terms ``imupipe diagnose`` accepted: ``{"effect", "sensor", "parameters"}``
+        (effects.md names, SI units, the calibration's frame)."""
+        return list(self.meta.get("model_terms", []))
+
+    def predict(self, sensor: str, x: np.ndarray, T: np.ndarray | float | None = None,
+                signals: Mapping[str, Any] | None = None) -> np.ndarray:
+        """Raw readings (n, 3) of ``sensor`` for true inputs ``x`` (n, 3): the triad's model plus
+        every model term of that sensor. ``signals``: what the terms need, by the names of the
+        effects' ``regressors`` (``omega``, ``alpha`` rad/s, rad/s^2 for a lever arm; ``f_dot``
+        m/s^3 for a time offset; ``f`` m/s^2 for a gyro g-sensitivity; ``t_on`` s for a warm-up;
+        ``north``/``up`` unit vectors for Earth's rate); a missing one is a ``ConfigError``."""
+        triad = self[sensor]
+        x = np.asarray(x, dtype=float)
+        return triad.predict(x, T) + self._terms(sensor, x @ triad.S.T, x, T, signals)
+
+    def apply(self, sensor: str, y: np.ndarray, T: np.ndarray | float | None = None,
+              signals: Mapping[str, Any] | None = None) -> np.ndarray:
+        """Correct raw readings ``y`` (n, 3) of ``sensor`` with the triad's model and its model
+        terms (subtracted first; evaluated at the nominal correction, exact to first order)."""
+        triad = self[sensor]
+        y = np.asarray(y, dtype=float)
+        return triad.apply(y - self._terms(sensor, y - triad.bias(T), triad.apply(y, T), T, signals), T)
+
+    def _terms(self, sensor: str, sensed: np.ndarray, x: np.ndarray, T, signals) -> np.ndarray | float:
+        terms = [t for t in self.model_terms if t.get("sensor") == sensor]
+        if not terms:
+            return 0.0
+        from .plugins import make_registry  # the effects are plugins: loaded only when a term is applied
+
+        registry = make_registry()
+        inputs: dict[str, Any] = {"x": sensed}
+        if T is not None:
+            inputs["T"] = np.broadcast_to(np.asarray(T, dtype=float), (len(sensed),))
+        if sensor == "accel":
+            inputs["f"] = x
+        inputs.update(signals or {})
+        return sum(registry.get("effects", t["effect"]).term(inputs, t["parameters"], self[sensor].S)
+                   for t in terms)
+
     def to_dict(self) -> dict[str, Any]:
         """The ``calibration.json`` of ``spec/contracts.md`` (extra keys allowed)."""
         T_ref = next(iter(self.triads.values())).T_ref_C if self.triads else T_REF_C

@@ -12,29 +12,39 @@ from __future__ import annotations
 import numpy as np
 
 from .evaluate import Evaluation
-from .residual_map import windows
-from .select import REVEAL, UNTESTED, VISIBLE_MIN, Q_FDR, Finding, candidates, heldout, select, examine
+from .library import structure_cells
+from .residual_map import benjamini_hochberg, windows
+from .select import EARTH_RATE, REVEAL, UNTESTED, VISIBLE_MIN, Q_FDR, Finding, candidates, heldout, select, examine
 
 AXES = ("x", "y", "z")
+EARTH_IMPLAUSIBLE = 1.2  # a vertical rate above this many Earth rates is not Earth's
 
 
 def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str = "", q: float = Q_FDR) -> dict:
     lin = ev.lin
     tested = [examine(lin, c) for c in candidates(lin, ev.frame, effects)]
     rp, accepted = select(lin, tested, q)
-    findings, not_confirmed = [], []
+    findings, not_confirmed, kept = [], [], []
     for i, f in enumerate(accepted):
         doc = _finding(lin, rp, f, accepted[:i] + accepted[i + 1:], effects)
         if doc["heldout_rms_after"] < doc["heldout_rms_before"]:
             findings.append(doc)
+            kept.append(f)
         else:  # significant on the data it was fitted to, no better on data it was not: not stood behind
             not_confirmed.append({"effect": doc["effect"], "sensor": doc["sensor"], "regime": doc["regime"],
                                   "parameters": doc["parameters"], "significance": doc["significance"],
                                   "reason": f"held-out RMS did not improve ({doc['heldout_rms_before']:.4g} -> "
                                             f"{doc['heldout_rms_after']:.4g})"})
+    # structure the accepted terms leave: the generic library tested conditionally on them
+    given = np.hstack([f.tested.projected for f in kept]) if kept else None
+    left = structure_cells(lin, given, rp)
+    for cell, flag in zip(left, benjamini_hochberg(np.array([c.p_value for c in left]), q)):
+        if flag and not any(u["sensor"] == cell.sensor and u["regime"] == cell.regime
+                            for u in findings if u["effect"] == "unknown"):
+            findings.append(_structure(cell))
     covered = {(f["sensor"], f["regime"]) for f in findings}
     for cell in (map_doc or {}).get("cells", []):
-        if not cell.get("flagged"):
+        if not cell.get("flagged") or cell["variable"] == "structure":  # tested above, given the findings
             continue
         regimes = {cell["regime"], "all"}
         if any((cell["sensor"], r) in covered for r in regimes):
@@ -75,16 +85,20 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
 def _finding(lin, rp: np.ndarray, f: Finding, others: list[Finding], effects: dict) -> dict:
     c = f.tested.candidate
     params = {k: _json(v) for k, v in c.to_params(f.theta).items()}
+    effect = c.effect
+    if effect == "earth_rotation" and abs(f.theta[0]) > EARTH_IMPLAUSIBLE * EARTH_RATE:
+        # a vertical rate Earth cannot make: the isotropic g-sensitivity it is indistinguishable from at rest
+        effect, params = "gyro_g_sensitivity", {"G": (float(f.theta[0]) / lin.model.g * np.eye(3)).tolist()}
     before, after = heldout(lin, rp, f, others)
     contrib = (f.tested.projected @ f.theta) ** 2
     rows = np.any(c.columns != 0, axis=1)
     where = windows(lin.rows.t[rows], contrib[rows])
     try:
-        words = effects[c.effect].explain({k: v for k, v in params.items()})
+        words = effects[effect].explain({k: v for k, v in params.items()})
     except Exception:  # noqa: BLE001 - a plugin's explain must not sink the diagnosis
-        words = f"{c.effect}: {params}"
+        words = f"{effect}: {params}"
     return {
-        "effect": c.effect, "sensor": c.sensor, "axes": list(AXES), "regime": c.regime,
+        "effect": effect, "sensor": c.sensor, "axes": list(AXES), "regime": c.regime,
         "windows": [[float(a), float(b)] for a, b in where],
         "parameters": params,
         "significance": {"statistic": f.statistic, "p_value": f.p_value, "delta_bic": f.delta_bic},
@@ -107,6 +121,21 @@ def _unknown(cell: dict) -> dict:
                         f"with {var} in [{lo}, {hi}] have chi2/dof {cell['chi2_per_dof']:.2f} and no catalogue "
                         "term explains them: look at those windows (an unmodelled disturbance, a knock, a "
                         "vibrating support or physics outside the catalogue)."),
+    }
+
+
+def _structure(cell) -> dict:
+    follows = "; ".join(f"{t['signal']} on {t['output_axis']} ({t['coefficient']:.3g} {t['unit']}, t = {t['t']:.1f})"
+                        for t in cell.terms)
+    return {
+        "effect": "unknown", "sensor": cell.sensor, "axes": list(cell.axes), "regime": cell.regime,
+        "windows": [list(w) for w in cell.windows], "parameters": {"follows": cell.terms},
+        "significance": {"statistic": cell.chi2, "p_value": cell.p_value, "delta_bic": None},
+        "heldout_rms_before": None, "heldout_rms_after": None,
+        "explanation": (f"The {cell.sensor} {'/'.join(cell.axes)} residuals in the {cell.regime} rows follow "
+                        f"signals the model already reconstructs (score chi2 {cell.chi2:.1f} on {cell.dof:g} "
+                        f"directions, p = {cell.p_value:.2g}) and no accepted catalogue term explains it; "
+                        f"strongest: {follows}."),
     }
 
 

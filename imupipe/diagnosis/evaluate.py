@@ -70,7 +70,7 @@ def effective_counts(rests: Rests, streams: Mapping[str, tuple[np.ndarray, np.nd
     (chi-square with ``ESS_BATCHES - 1`` dof) keeps its own."""
     crit = chi2_dist.ppf(0.99, ESS_BATCHES - 1) / (ESS_BATCHES - 1)
     counts = {}
-    for sensor in ("accel", "gyro"):
+    for sensor in ("accel", "gyro", "mag"):
         if not rests.has(sensor) or sensor not in streams:
             continue
         t, y = streams[sensor]

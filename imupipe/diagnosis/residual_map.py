@@ -302,11 +302,16 @@ def change_points(ev: Evaluation, penalty_sd: float = 4.0) -> list[Event]:
     return out
 
 
-def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR) -> dict:
-    """The ``residual_map.json`` document of ``spec/contracts.md`` for an evaluation."""
+def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR, extra: tuple[RowSet, ...] = ()) -> dict:
+    """The ``residual_map.json`` document of ``spec/contracts.md`` for an evaluation; ``extra``:
+    rows of triads outside the per-sample model (the magnetometer's, ``magnetic``)."""
+    from .library import structure_cells  # it builds on select, which builds on this module
+
     model_rs = model_rows(ev)
     noise_rs = rest_scatter_rows(ev)
-    all_cells = cells(model_rs) + cells(noise_rs)
+    all_cells = cells(model_rs) + cells(noise_rs) + structure_cells(ev.lin)
+    for rs in extra:
+        all_cells += cells(rs)
     p = np.array([c.p_value for c in all_cells])
     flagged = benjamini_hochberg(p, q)
     # flagged first, by the misfit they carry (chi2 - dof: a log-likelihood excess; p-values
@@ -323,12 +328,13 @@ def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR) -> dict:
                        "chi2_per_dof": b["chi2_per_dof"], "rows": b["rows"]})
         if name in ev.white_chi2 and b["dof"] > 0:  # before the recording's own (coloured) noise model
             blocks[-1]["chi2_per_dof_white"] = ev.white_chi2[name] / b["dof"]
-    sc = noise_rs
-    for sensor in np.unique(sc.sensor):
-        m = sc.sensor == sensor
-        c2, dof = float((sc.r[m] ** 2).sum()), float(sc.w[m].sum())
-        blocks.append({"block": f"{sensor}_rest_samples", "sensor": str(sensor), "kind": "rest",
-                       "chi2": c2, "dof": dof, "chi2_per_dof": c2 / dof if dof else None, "rows": int(m.sum())})
+    for sc in (noise_rs, *extra):
+        for sensor in np.unique(sc.sensor):
+            m = sc.sensor == sensor
+            c2, dof = float((sc.r[m] ** 2).sum()), float(sc.w[m].sum())
+            name = f"{sensor}_rest_samples" if sc.family == "noise" else f"{sensor}_rest"
+            blocks.append({"block": name, "sensor": str(sensor), "kind": "rest",
+                           "chi2": c2, "dof": dof, "chi2_per_dof": c2 / dof if dof else None, "rows": int(m.sum())})
     cell_docs = []
     for rank, i in enumerate(order):
         c = all_cells[i]
@@ -340,6 +346,8 @@ def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR) -> dict:
             "chi2_per_dof": c.chi2_per_dof, "dof": c.dof, "p_value": float(p[i]), "flagged": bool(flagged[i]),
             "rank": rank,
         })
+        if c.variable == "structure":
+            cell_docs[-1]["terms"] = c.terms
     events = list(ev.events) + change_points(ev)
     return {"session": session, "blocks": blocks, "cells": cell_docs,
             "events": [e.to_dict() for e in sorted(events, key=lambda e: e.window[0])],

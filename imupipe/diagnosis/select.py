@@ -34,6 +34,7 @@ import numpy as np
 from scipy import stats
 from scipy.signal import savgol_filter
 
+from ..effects.earth_rotation import EARTH_RATE
 from ..rotations import skew
 from .linearised import Linearised
 from .residual_map import benjamini_hochberg
@@ -47,11 +48,11 @@ UNTESTED = {
     "gyro_scale_asymmetry": "acts through the attitude integration inside motions (not in the score model yet)",
     "gyro_saturation": "acts through the attitude integration inside motions (not in the score model yet)",
     "gyro_scale_temperature": "acts through the attitude integration inside motions (not in the score model yet)",
-    "earth_rotation": "needs the heading of every rest (not in the score model yet); at rest it is "
-                      "indistinguishable from an isotropic gyro g-sensitivity",
     "thermal_lag": "needs a profiled lag of the temperature stream (not in the score model yet)",
-    "mag_current_interference": "the magnetometer is not in the per-sample model yet",
-    "mag_field_gradient": "the magnetometer is not in the per-sample model yet",
+    "mag_current_interference": "the magnetometer is mapped (rest magnitude and dip, within-rest scatter) "
+                                "but has no score model yet: a flagged magnetometer cell is reported as unknown",
+    "mag_field_gradient": "the magnetometer is mapped (rest magnitude and dip, within-rest scatter) "
+                          "but has no score model yet: a flagged magnetometer cell is reported as unknown",
     "bias_random_walk": "modelled in the nominal fit (the bias walks of both triads)",
 }
 REVEAL = {
@@ -61,6 +62,7 @@ REVEAL = {
     "accel_scale_temperature": "rests at several orientations repeated across a wide temperature range",
     "bias_temperature_nonlinear": "rests spread over a wide temperature range (a thermal sweep)",
     "gyro_g_sensitivity": "long rests at many orientations (each axis up and down)",
+    "earth_rotation": "long rests at many orientations; the latitude known (it fixes the vertical rate)",
     "warmup_transient": "a cold start with rests in the first minutes after power-on",
 }
 
@@ -190,6 +192,16 @@ def candidates(lin: Linearised, frame: np.ndarray, registry) -> list[Candidate]:
         C = s.column(s.rows_g, s.W_g, R)
         out.append(Candidate("gyro_g_sensitivity", "gyro", "static", [f"G{i}{j}" for i in range(3) for j in range(3)],
                              C, lambda th: {"G": (th.reshape(3, 3) @ Q).tolist()}))
+    if "earth_rotation" in eff:
+        # at rest Earth's rate has a vertical part along gravity (Omega sin(lat), the same in every
+        # rest: an isotropic g-sensitivity G = (Omega sin(lat) / g) I) and a horizontal part that
+        # turns with the heading, which no rest fixes (left to the bias walk). One column, against
+        # the nine of gyro_g_sensitivity: the selection names whichever explains the rests
+        # with fewer parameters.
+        up = s.f_rest / np.linalg.norm(s.f_rest, axis=1, keepdims=True)
+        R = eff["earth_rotation"].regressors({"north": np.zeros_like(up), "up": up})[:, :, 1:]
+        out.append(Candidate("earth_rotation", "gyro", "static", ["Omega_sin_lat"], s.column(s.rows_g, s.W_g, R),
+                             _latitude))
     if "warmup_transient" in eff:
         for sensor, rows, W in (("accel", s.rows_a, s.W_a), ("gyro", s.rows_g, s.W_g)):
             for tau in WARMUP_TAUS_S:
@@ -201,6 +213,12 @@ def candidates(lin: Linearised, frame: np.ndarray, registry) -> list[Candidate]:
                                                                          "sensor": sensor},
                                      extra_dof=len(WARMUP_TAUS_S), fixed={"tau_s": tau}))
     return [c for c in out if np.any(c.columns)]
+
+
+def _latitude(th: np.ndarray) -> dict:
+    """Earth rate's vertical component (``Omega sin(lat)``) -> latitude (``diagnose`` renames a
+    vertical rate beyond Earth's an isotropic gyro g-sensitivity)."""
+    return {"latitude_deg": float(np.degrees(np.arcsin(np.clip(float(th[0]) / EARTH_RATE, -1, 1))))}
 
 
 def project(lin: Linearised, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -291,6 +309,7 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR) -> tuple[np.
                 f.delta_bic = -T2 + f.tested.projected.shape[1] * np.log(n_rows)
         if best[0] not in [f.tested for f in accepted]:
             break
+    _earth_or_g(accepted, pool, stat, n_rows)
     if accepted:
         A = np.hstack([f.tested.projected for f in accepted])
         theta = -np.linalg.lstsq(A, rp, rcond=None)[0]  # r(theta) = rp + A theta, minimised
@@ -300,6 +319,22 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR) -> tuple[np.
             f.theta = theta[o:o + k]
             o += k
     return rp, accepted
+
+
+def _earth_or_g(accepted: list[Finding], pool: list[Tested], stat, n_rows: int) -> None:
+    """The naming trap of the rests: Earth's vertical rate is an isotropic g-sensitivity
+    (G = Omega sin(lat) / g I). An accepted G whose eight further parameters explain less than
+    BIC asks of them over the one Earth-rate column is Earth's rate (in place)."""
+    g = next((f for f in accepted if f.tested.candidate.effect == "gyro_g_sensitivity"), None)
+    e = next((t for t in pool if t.candidate.effect == "earth_rotation"), None)
+    if g is None or e is None or any(f.tested is e for f in accepted):
+        return
+    others = [f for f in accepted if f is not g]
+    T_g, _ = stat(g.tested, others)
+    T_e, p_e = stat(e, others)
+    extra = g.tested.projected.shape[1] - e.projected.shape[1]
+    if T_g - T_e < extra * np.log(n_rows) and p_e <= g.p_value * 1e3:
+        accepted[accepted.index(g)] = Finding(e, T_e, p_e, -T_e + e.projected.shape[1] * np.log(n_rows))
 
 
 def raw_units(lin: Linearised, r: np.ndarray) -> dict[str, np.ndarray]:

@@ -29,6 +29,7 @@ For the diagnosis an effect may also offer ``regressors(inputs, parameters)``
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Mapping
 from typing import Annotated, Any, ClassVar
 
@@ -103,6 +104,32 @@ class EffectBase:
     def _apply(self, streams: dict[str, Any], ctx: Any, p: Any, rng: np.random.Generator) -> None:
         raise NotImplementedError
 
+    #: the parameters (in order, flattened) the effect's reading is linear in: ``term`` multiplies
+    #: ``regressors`` by them
+    linear: ClassVar[tuple[str, ...]] = ()
+
+    def theta(self, p: Params) -> np.ndarray:
+        return np.concatenate([np.ravel(np.asarray(getattr(p, name), float)) for name in self.linear])
+
+    def term(self, inputs: Mapping[str, np.ndarray], parameters: Mapping[str, Any] | Params,
+             S: np.ndarray | None = None) -> np.ndarray:
+        """(n, 3) what the effect adds to its triad's raw reading, to first order: ``regressors``
+        times ``theta``; an effect on the true input (``input``/``timing`` stage) goes through
+        the triad's ``S``. ``ConfigError`` names a missing input."""
+        p = self.validate(parameters)
+        if not self.linear or not hasattr(self, "regressors"):
+            raise ConfigError(f"effect {self.identifier}: no first-order term to apply")
+        try:
+            takes_params = len(inspect.signature(self.regressors).parameters) > 1
+            R = self.regressors(inputs, p) if takes_params else self.regressors(inputs)
+        except KeyError as exc:
+            raise ConfigError(f"effect {self.identifier} needs the signal {exc.args[0]!r} (n, 3) or (n,) "
+                              "to apply; pass it in signals") from None
+        y = np.einsum("nik,k->ni", R, self.theta(p))
+        if self.stage in ("input", "timing") and S is not None:
+            y = y @ np.asarray(S, float).T
+        return y
+
     def explain(self, parameters: Mapping[str, Any] | Params) -> str:
         p = self.validate(parameters)
         return f"{self.identifier} ({self.target(p)}): {self.physics} Parameters: {p.model_dump()}."
@@ -115,6 +142,7 @@ class ScaleTemperature(EffectBase):
     """Scale factor of each sensor axis is ``1 + s_i (T_die - 25)``, ``s`` in ppm per degC."""
 
     stage = "sensed"
+    linear = ("ppm_per_C",)
     physics = "the scale factor of each axis drifts linearly with die temperature."
 
     def _apply(self, streams, ctx, p, rng) -> None:

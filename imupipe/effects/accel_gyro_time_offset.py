@@ -20,6 +20,7 @@ class AccelGyroTimeOffset(EffectBase):
     sensors = ("accel",)
     stage = "timing"
     params = TimeOffsetParams
+    linear = ("dt_s",)
     physics = "the accelerometer's stamps are late relative to the gyro's, so rotating gravity lags."
 
     def _apply(self, streams, ctx, p, rng) -> None:

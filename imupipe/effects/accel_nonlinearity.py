@@ -19,6 +19,7 @@ class AccelNonlinearity(EffectBase):
     sensors = ("accel",)
     stage = "sensed"
     params = NonlinearityParams
+    linear = ("k2",)
     physics = "each axis gains a term quadratic in the specific force it senses (k2_i f_i^2)."
 
     def _apply(self, streams, ctx, p, rng) -> None:

@@ -22,6 +22,7 @@ class BiasTemperatureNonlinear(EffectBase):
     sensors = ("accel", "gyro", "mag")
     stage = "bias"
     params = QuadraticParams
+    linear = ("k2_per_C2",)
     physics = "the bias has a term quadratic in temperature, beyond the linear coefficient k."
 
     def _apply(self, streams, ctx, p, rng) -> None:

@@ -20,6 +20,7 @@ class GyroGSensitivity(EffectBase):
     sensors = ("gyro",)
     stage = "bias"
     params = GSensitivityParams
+    linear = ("G",)
     physics = "the gyro output gains G f, f the specific force (proof-mass deflection under acceleration)."
 
     def _apply(self, streams, ctx, p, rng) -> None:

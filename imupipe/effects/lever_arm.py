@@ -20,6 +20,7 @@ class LeverArm(EffectBase):
     sensors = ("accel",)
     stage = "input"
     params = LeverArmParams
+    linear = ("r_m",)
     physics = "the accelerometer is off the centre of rotation and feels tangential and centripetal acceleration."
 
     def _apply(self, streams, ctx, p, rng) -> None:

@@ -22,6 +22,7 @@ class MagCurrentInterference(EffectBase):
     sensors = ("mag",)
     stage = "bias"
     params = CurrentParams
+    linear = ("offset_T",)
     physics = "a periodic current near the magnetometer adds a square-wave offset."
 
     def on(self, t: np.ndarray, p: CurrentParams) -> np.ndarray:

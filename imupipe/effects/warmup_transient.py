@@ -23,6 +23,7 @@ class WarmupTransient(EffectBase):
     sensors = ("accel", "gyro", "mag")
     stage = "bias"
     params = TransientParams
+    linear = ("amp",)
     physics = "the bias settles exponentially after power-on (electronics settling), not with temperature."
 
     def _apply(self, streams, ctx, p, rng) -> None:

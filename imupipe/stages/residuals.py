@@ -3,7 +3,8 @@
 Inputs: the session's raw ``accel`` and ``gyro`` (and ``temperature``), the
 segmentation's ``rests`` and ``turns`` (and the ``events`` of ``screen_events``:
 gaps, shocks, splices), and the ``calibration`` to judge (the joint refinement's, whose
-details carry the noise model it fitted: the bias walks). Outputs the per-sample
+details carry the noise model it fitted: the bias walks); optionally the raw ``mag`` and its
+``mag_calibration``, judged at the rests (``diagnosis.magnetic``). Outputs the per-sample
 residual table (``sample_residuals``) and the residual map (``residual_map``: its
 cells as rows, the whole ``residual_map.json`` document in the schema metadata).
 See ``imupipe.diagnosis`` and docs/residual-map.md.
@@ -78,11 +79,33 @@ def evaluation(inputs: Mapping[str, pa.Table], params: MapParams) -> Evaluation:
                     _events(inputs.get("events")), knot_s=params.knot_s)
 
 
+def magnetometer_rows(inputs: Mapping[str, pa.Table]) -> tuple:
+    """The magnetometer's rest and within-rest rows for the map (``diagnosis.magnetic``), when
+    the session has one and its calibration is wired in (``mag_calibration``)."""
+    from ..diagnosis.evaluate import effective_counts
+    from ..diagnosis.magnetic import rest_rows, scatter_rows
+
+    if inputs.get("mag") is None or inputs.get("mag_calibration") is None:
+        return ()
+    mag_cal = Calibration.from_tables(inputs["mag_calibration"])
+    cal = Calibration.from_tables(inputs["calibration"])
+    if "mag" not in mag_cal.triads or "accel" not in cal.triads:
+        return ()
+    rests = Rests.from_table(inputs["rests"])
+    if not rests.has("mag"):
+        return ()
+    t_ns, y = xyz(inputs["mag"])
+    t = (t_ns - rests.t0_ns) * 1e-9
+    rests = effective_counts(rests, {"mag": (t, y)})
+    return tuple(rs for rs in (rest_rows(rests, cal["accel"], mag_cal["mag"]), scatter_rows(rests, t, y))
+                 if rs is not None)
+
+
 def map_residuals(inputs: Mapping[str, pa.Table], params: MapParams, solver: BoundSolver | None) -> dict:
     from ..diagnosis.residual_map import residual_map
 
     ev = evaluation(inputs, params)
-    doc = residual_map(ev, q=params.fdr_q)
+    doc = residual_map(ev, q=params.fdr_q, extra=magnetometer_rows(inputs))
     meta = {MAP_KEY.decode(): json.dumps(doc)}
     return {"samples": ev.samples, "map": schemas.stamp(_cell_table(doc["cells"]), "residual_map", meta)}
 
@@ -107,13 +130,14 @@ def _edge(x) -> float:
 
 STAGE = Stage(
     name="map_residuals",
-    version="10",
+    version="11",
     func=map_residuals,
     inputs={"accel": "accel", "gyro": "gyro", "temperature": "temperature", "rests": "rests",
-            "turns": "turns", "calibration": "calibration", "events": "events"},
+            "turns": "turns", "calibration": "calibration", "events": "events", "mag": "mag",
+            "mag_calibration": "calibration"},
     outputs={"samples": "sample_residuals", "map": "residual_map"},
     params=MapParams,
-    optional_inputs=frozenset({"temperature", "events"}),
+    optional_inputs=frozenset({"temperature", "events", "mag", "mag_calibration"}),
     description="Every sample predicted under the calibration (rests, turns, motions), whitened "
                 "by the recording's noise model; chi2/dof per sensor x axis x regime cell with "
                 "Benjamini-Hochberg flags, change points and events.",
@@ -127,7 +151,7 @@ def diagnose_session(inputs: Mapping[str, pa.Table], params: MapParams, solver: 
     from ..plugins import make_registry
 
     ev = evaluation(inputs, params)
-    doc = residual_map(ev, q=params.fdr_q)
+    doc = residual_map(ev, q=params.fdr_q, extra=magnetometer_rows(inputs))
     registry = make_registry()
     effects = {name: registry.get("effects", name) for name in registry.names("effects")}
     diag = diagnose(ev, doc, effects, q=params.fdr_q)
@@ -144,12 +168,12 @@ def diagnose_session(inputs: Mapping[str, pa.Table], params: MapParams, solver: 
 
 DIAGNOSE = Stage(
     name="diagnose",
-    version="11",
+    version="12",
     func=diagnose_session,
     inputs=STAGE.inputs,
     outputs={"samples": "sample_residuals", "map": "residual_map", "diagnosis": "diagnosis"},
     params=MapParams,
-    optional_inputs=frozenset({"temperature", "events"}),
+    optional_inputs=frozenset({"temperature", "events", "mag", "mag_calibration"}),
     description="The residual map, then every catalogue effect tested against the fitted per-sample "
                 "model (score tests, Benjamini-Hochberg forward selection, held-out check): "
                 "diagnosis.json.",

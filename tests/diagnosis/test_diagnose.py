@@ -73,3 +73,11 @@ def test_diagnose_refuses_a_pipeline_without_a_residual_map(tmp_path, capsys):
                         'inputs = { accel = "session.accel", gyro = "session.gyro" }\n')
     assert main(["diagnose", str(path), "--pipeline", str(pipeline), "--out", str(tmp_path / "o")]) == 2
     assert "no map_residuals stage" in capsys.readouterr().err
+
+
+def test_earth_rate_is_named_as_such_not_as_an_isotropic_g_sensitivity(tmp_path):
+    # at rest Earth's vertical rate is G = (Omega sin(lat) / g) I: the one-column name wins
+    doc, _ = _diagnosis(tmp_path, {"earth_rotation": {"latitude_deg": 55.75}})
+    gyro = [f for f in doc["findings"] if f["sensor"] == "gyro" and f["effect"] != "unknown"]
+    assert [f["effect"] for f in gyro] == ["earth_rotation"], doc["findings"]
+    assert 40 < gyro[0]["parameters"]["latitude_deg"] < 75

@@ -1,0 +1,67 @@
+"""The magnetometer's rows of the residual map: heading-free rest residuals with the calibration
+refitted, and within-rest scatter against the successive-difference noise."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+from imupipe.diagnosis.magnetic import rest_rows, scatter_rows
+from imupipe.diagnosis.residual_map import cells
+from imupipe.models import TriadCalibration
+from imupipe.observations import Rests
+
+F, DIP, G = 50e-6, np.radians(70.0), 9.80665
+S_MAG = np.array([[1.03, 0.02, -0.01], [0.0, 0.97, 0.015], [0.0, 0.0, 1.01]])
+B_MAG = np.array([3e-6, -2e-6, 5e-6])
+SIGMA = 3e-7  # T, one sample
+N_SAMPLES = 200  # per rest
+
+
+def _rests(rng, n=40, field_of_rest=None) -> Rests:
+    R = Rotation.random(n, random_state=rng)
+    f = R.inv().apply([0, 0, G])
+    h_world = np.array([0.0, np.cos(DIP), -np.sin(DIP)])
+    scale = np.ones(n) if field_of_rest is None else field_of_rest(np.arange(n))
+    h = R.inv().apply(h_world) * (F * scale)[:, None]
+    y = h @ S_MAG.T + B_MAG + rng.normal(0, SIGMA / np.sqrt(N_SAMPLES), (n, 3))
+    a = f + rng.normal(0, 1e-3 / np.sqrt(N_SAMPLES), (n, 3))
+    t0 = np.arange(n) * 10.0
+    cov = {"mag": np.tile(np.eye(3) * SIGMA ** 2, (n, 1, 1)), "accel": np.tile(np.eye(3) * 1e-6, (n, 1, 1))}
+    counts = {"mag": np.full(n, N_SAMPLES), "accel": np.full(n, N_SAMPLES)}
+    return Rests(t0, t0 + 4.0, np.full(n, N_SAMPLES), {"mag": y, "accel": a}, cov, np.full(n, np.nan), counts)
+
+
+def _mag_cal(rests: Rests) -> TriadCalibration:
+    # a slightly wrong starting calibration: the rows judge the model after refitting it
+    return TriadCalibration("mag", np.linalg.inv(S_MAG) @ (np.eye(3) + 0.01), B_MAG + 1e-6)
+
+
+ACCEL = TriadCalibration("accel", np.eye(3))
+
+
+def test_rest_rows_are_white_on_a_null_and_see_a_field_that_changes_between_places():
+    rng = np.random.default_rng(1)
+    rests = _rests(rng)
+    rs = rest_rows(rests, ACCEL, _mag_cal(rests))
+    stat, dof = float(rs.r @ rs.r), float(rs.w.sum())
+    assert len(rs.r) == 2 * len(rests) and dof < len(rs.r) - 10  # the refit's parameters are counted
+    assert chi2.sf(stat, dof) > 1e-3 and chi2.cdf(stat, dof) > 1e-3
+    moved = _rests(np.random.default_rng(1), field_of_rest=lambda i: np.where(i < 20, 1.0, 1.004))
+    rs = rest_rows(moved, ACCEL, _mag_cal(moved))
+    flagged = [c for c in cells(rs) if c.p_value < 1e-6]
+    assert any(c.variable == "time s" for c in flagged)
+
+
+def test_within_rest_scatter_sees_a_switched_current_but_not_white_noise_or_quantisation():
+    rng = np.random.default_rng(2)
+    rests = _rests(rng, n=12)
+    t = np.arange(0, 120.0, 0.01)
+    y = np.round((F + rng.normal(0, SIGMA, (len(t), 3))) / 1.5e-7) * 1.5e-7  # quantised white noise
+    quiet = scatter_rows(rests, t, y)
+    assert abs(float(quiet.r @ quiet.r) / quiet.w.sum() - 1) < 0.05
+    y[:, 0] += 6e-7 * (np.mod(t, 1.0) < 0.5)  # a 1 Hz square wave of 0.6 uT on x
+    loud = scatter_rows(rests, t, y)
+    x = loud.axis == 0
+    assert float(loud.r[x] @ loud.r[x]) / loud.w[x].sum() > 1.5
