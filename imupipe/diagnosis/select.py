@@ -103,7 +103,7 @@ class Signals:
         self.lin, self.model = lin, model
         P = model.unpack(lin.x_g)
         self.S_a = P["S_a"]
-        _, _, _, sig = model.residuals(lin.x_g, lin.x_l, signals=True)
+        _, _, _, sig = model.residuals(lin.x_g, lin.x_l, signals=True, jacobian=False)
         g = model.g
         self.f_rest = g * sig["gravity_rest"]  # (n, 3) model frame
         self.T_rest = model.dT + 25.0
@@ -115,7 +115,7 @@ class Signals:
         self.has_motion = len(acc.t) > 0
         if self.has_motion:
             self.f_motion = g * sig["gravity_motion"]
-            omega, _ = model._rates(P, lin.x_l)
+            omega, _ = model._rates(P, lin.x_l, derivatives=False)
             ms = model.motions
             self.omega = np.zeros((len(acc.t), 3))
             self.alpha = np.zeros((len(acc.t), 3))
