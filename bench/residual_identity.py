@@ -3,9 +3,12 @@
     python bench/residual_identity.py --save REF [--seed 0] [--protocol standard]
     python bench/residual_identity.py --check REF [--rtol 1e-9]
 
-Simulates the session (``imupipe simulate``'s protocol and seed; the standard protocol is
-the 30-minute session of ``bench/residual_cost.py``), runs the default pipeline on it and
-reads what the map stage wrote: ``residuals.parquet`` (every sample's prediction, residual
+``--save`` simulates the session (``imupipe simulate``'s protocol and seed; the standard
+protocol is the 30-minute session of ``bench/residual_cost.py``) into ``REF.d``, runs the
+default pipeline on it, then reruns the map stage alone; ``--check`` reruns the map stage
+alone on a copy of ``REF.d``, whose cache holds the stages before it as they were saved (so
+an upstream change, amplified by the fits' stopping rules, does not mask the map's own). Both
+read what the map stage wrote: ``residuals.parquet`` (every sample's prediction, residual
 and whitened residual, gravity, |omega|, |alpha|, ...) and ``residual_map.json`` (every
 cell's and block's chi2, dof, p-value, events, change points). ``--save`` stores them as
 ``REF.npz`` and ``REF.json``; ``--check`` recomputes them with the imupipe this Python
@@ -21,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -29,20 +33,38 @@ from pathlib import Path
 import numpy as np
 
 
-def produce(protocol: str, seed: int, folder: Path) -> tuple[dict[str, np.ndarray], dict]:
-    from imupipe.sim.api import simulate
-
-    session = folder / f"{protocol}.mcap"
-    simulate(protocol, {}, seed, session, quiet=True)
-    out = folder / "out"
+def _run(folder: Path, session: Path, out: Path, *extra: str) -> None:
     # run from the scratch folder: ``-m`` then finds the imupipe this interpreter has installed,
     # not a checkout that happens to be the working directory
-    subprocess.run([sys.executable, "-m", "imupipe.cli", "run", str(session), "--out", str(out), "--quiet"],
+    subprocess.run([sys.executable, "-m", "imupipe.cli", "run", str(session), "--out", str(out), "--quiet", *extra],
                    check=True, stdout=subprocess.DEVNULL, cwd=folder)
+
+
+def _gravity(run: Path) -> float:
+    cal = json.loads((run / "calibration.json").read_text())
+    for triad in ("gyro", "accel"):
+        g = cal.get(triad, {}).get("joint", {}).get("gravity_m_s2")
+        if g:
+            return float(g)
+    return 9.80665
+
+
+def produce(folder: Path, protocol: str, seed: int, fresh: bool) -> tuple[dict[str, np.ndarray], dict]:
+    """The map stage's outputs on the session in ``folder`` (simulated and run first when
+    ``fresh``): the map stage is rerun alone (its local gravity set to the value it reads
+    from the calibration anyway: a new cache key, the same numbers) on the stages before it
+    as the cache holds them, so only the map stage's own code is compared."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
+    session, out = folder / f"{protocol}.mcap", folder / "out"
+    if fresh:
+        from imupipe.sim.api import simulate
+
+        simulate(protocol, {}, seed, session, quiet=True)
+        _run(folder, session, out)
     run = out / session.stem
+    _run(folder, session, out, "--set", f"map.g_m_s2={_gravity(run)!r}")
     table = pq.read_table(run / "residuals.parquet")
     arrays = {}
     for name in table.column_names:
@@ -103,15 +125,23 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rtol", type=float, default=1e-9)
     args = ap.parse_args()
-    with tempfile.TemporaryDirectory(prefix="residual-identity-") as tmp:
-        arrays, doc = produce(args.protocol, args.seed, Path(tmp))
+    if args.save:
+        folder = args.save.with_suffix(".d")
+        shutil.rmtree(folder, ignore_errors=True)
+        folder.mkdir(parents=True)
+        arrays, doc = produce(folder, args.protocol, args.seed, fresh=True)
+    else:  # a copy of the saved run: its cache holds the stages before the map, as saved
+        with tempfile.TemporaryDirectory(prefix="residual-identity-") as tmp:
+            folder = Path(tmp) / "run"
+            shutil.copytree(args.check.with_suffix(".d"), folder)
+            arrays, doc = produce(folder, args.protocol, args.seed, fresh=False)
     if args.save:
         np.savez(args.save.with_suffix(".npz"), **{k: v for k, v in arrays.items() if v.dtype != object},
                  **{f"str:{k}": v.astype(str) for k, v in arrays.items() if v.dtype == object})
         args.save.with_suffix(".json").write_text(json.dumps(doc))
         print(f"imupipe from {Path(sys.modules['imupipe'].__file__).parent}")
         print(f"saved {len(arrays)} columns of {len(next(iter(arrays.values())))} rows and the map document "
-              f"to {args.save}.npz/.json")
+              f"to {args.save}.npz/.json (the run: {folder})")
         return
     print(f"imupipe from {Path(sys.modules['imupipe'].__file__).parent}")
     with np.load(args.check.with_suffix(".npz")) as z:

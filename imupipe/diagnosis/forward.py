@@ -461,10 +461,13 @@ class JointModel:
                 x[self.stages.knot_start[self.p[j]] + np.arange(2 * (K - 1))] = np.outer(frac, zK[j]).ravel()
         return x
 
-    def _endpoints(self, P: dict, x_l: np.ndarray, jacobian: bool = True):
+    def _endpoints(self, P: dict, x_l: np.ndarray, jacobian: bool = True, with_globals: bool = True):
         """Gnomonic end-point ``z_K`` (m, 2) of every motion and what it needs for derivatives
-        (``jacobian=False``: None for ``dz_gyro``, ``dz_dq`` and ``D``)."""
+        (``jacobian=False``: None for ``dz_gyro``, ``dz_dq`` and ``D``; ``with_globals=False``:
+        the rate derivatives and ``dz_gyro`` hold the 6 walk columns only)."""
         omega, D = self._rates(P, x_l, derivatives=jacobian)
+        if D is not None and not with_globals:
+            D = RateDerivatives(D.coef, D.basis[:, :, 15:])
         att = Attitude.integrate(self.quad, omega)
         u, du = self.gravity(x_l)
         w = np.einsum("mij,mj->mi", att.total, u[self.qr]) if self.m else np.zeros((0, 3))
@@ -546,10 +549,12 @@ class JointModel:
         return np.array(prev), np.array(nxt), np.maximum(np.array(dts), 1e-9), np.array(mids)
 
     # ------------------------------------------------------------------ residuals
-    def residuals(self, x_g: np.ndarray, x_l: np.ndarray, signals: bool = False, jacobian: bool = True):
+    def residuals(self, x_g: np.ndarray, x_l: np.ndarray, signals: bool = False, jacobian: bool = True,
+                  with_globals: bool = True):
         """Whitened residual ``r`` (N,), ``J_g`` (N, P_g) dense, ``J_l`` (N, P_l) CSR; with
         ``signals`` also a dict of the model's intermediate quantities (predictions, gravity);
-        ``jacobian=False``: the residual alone (None for both Jacobians, far cheaper)."""
+        ``jacobian=False``: the residual alone (None for both Jacobians, far cheaper);
+        ``with_globals=False``: ``J_g`` has no columns (a fit of the nuisances alone)."""
         P = self.unpack(x_g)
         n, g, gl = self.n, self.g, self.glob.slices
         Pg, Pl = self.glob.size, self.stages.size
@@ -557,20 +562,21 @@ class JointModel:
         r_parts, trip = [], []
         row0 = 0
         # the globals' Jacobian is written in place, block by block (no stacked copy)
-        J_g = np.zeros((len(self.rows.block), Pg)) if jacobian else None
+        J_g = np.zeros((len(self.rows.block), Pg if with_globals else 0)) if jacobian else None
 
         def block(r: np.ndarray, Jg: np.ndarray | None) -> int:
             """Append rows ``r`` and their ``Jg`` (None: zero, or already written through
             ``block.reserve``); returns their first row."""
             nonlocal row0
             r_parts.append(r)
-            if jacobian and Jg is not None:
+            if jacobian and with_globals and Jg is not None:
                 J_g[row0:row0 + len(r)] = Jg
             start = row0
             row0 += len(r)
             return start
 
         block.reserve = lambda n: J_g[row0:row0 + n]  # the next n rows' J_g, to fill in place
+        block.globals = with_globals
 
         def local(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray) -> None:
             if not jacobian:
@@ -586,7 +592,7 @@ class JointModel:
 
         local.flat = flat
 
-        zK, dz_gyro, dz_dq, att, D, omega, u, du = self._endpoints(P, x_l, jacobian) if self.m else \
+        zK, dz_gyro, dz_dq, att, D, omega, u, du = self._endpoints(P, x_l, jacobian, with_globals) if self.m else \
             (None,) * 6 + self.gravity(x_l)
         wga, wgb = self.walk_states(x_l, "wg")
         waa, wab = self.walk_states(x_l, "wa")
@@ -703,9 +709,12 @@ class JointModel:
             if not jac:
                 block(r.ravel(), None)
                 continue
-            Jg = np.zeros((K, 2, Pg))
-            Jg[-1][:, cols_g[gsel]] = (W[-1] @ dz_gyro[j])[:, :15][:, gsel]
-            s0 = block(r.ravel(), Jg.reshape(2 * K, Pg))
+            if block.globals:
+                Jg = np.zeros((K, 2, Pg))
+                Jg[-1][:, cols_g[gsel]] = (W[-1] @ dz_gyro[j])[:, :15][:, gsel]
+                s0 = block(r.ravel(), Jg.reshape(2 * K, Pg))
+            else:
+                s0 = block(r.ravel(), None)
             rows = s0 + 2 * np.arange(K)[:, None] + np.arange(2)  # (K, 2)
             knot_cols = np.vstack([self.stages.delta[p], ks + np.arange(2 * (K - 1)).reshape(K - 1, 2),
                                    np.full((1, 2), -2)])  # -2: the end-point (a function)
@@ -719,7 +728,7 @@ class JointModel:
             local(np.repeat(rows[-1][:, None], 2, 1), np.repeat(self.stages.delta[q][None, :], 2, 0),
                   Wl @ dz_dq[j])
             local(np.repeat(rows[-1][:, None], 6, 1), np.repeat(cols_l[j][None, :], 2, 0),
-                  (Wl @ dz_gyro[j])[:, 15:])
+                  (Wl @ dz_gyro[j])[:, -6:])
         if not (self.sampled and len(self.accel.t)):
             return
         self._sample_rows(P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, cols_l, jac)
@@ -797,26 +806,27 @@ class JointModel:
         if not jac:
             block(r.ravel(), None)
             return
-        Phi = att.sensitivity(D, self.accel_points)  # (k, 3, 21)
+        Phi = att.sensitivity(D, self.accel_points)  # (k, 3, 21), or (k, 3, 6) the walks' alone
         Uz = Rt @ dn @ Bp  # d ub / d z  (k, 3, 2)
         Uphi = Rt @ skew(nvec)  # d ub / d phi (k, 3, 3)
         WS = -g * self.W_sample @ S_a  # d r / d ub
-        Jg = block.reserve(3 * k).reshape(k, 3, Pg)
-        WL = np.einsum("ij,ljm->ilm", self.W_sample, _LOWER)  # (3, 6, 3)
-        Jg[:, :, gl["S_a"]] = -(f @ WL.reshape(-1, 3).T).reshape(k, 3, -1)
-        Jg[:, :, gl["b_a"]] = -self.W_sample
-        if self.fit_k:
-            Jg[:, :, gl["k_a"]] = -self.W_sample * self.dT_acc[:, None, None]
         dr_dz = WS @ Uz  # (k, 3, 2)
         dr_gyro = (WS @ Uphi) @ Phi  # (k, 3, 21)
         del Phi, Uphi
         at_end = lay["where_last"]
         dr_gyro[at_end] += mu[at_end, None, None] * np.einsum("kia,kap->kip", dr_dz[at_end], dz_gyro[j[at_end]])
-        # M_g and b_g are adjacent columns, k_g apart (cols_g: their 15, -1 where absent)
-        assert np.array_equal(cols_g[:12], np.arange(gl["M_g"].start, gl["b_g"].stop))
-        Jg[:, :, gl["M_g"].start:gl["b_g"].stop] = dr_gyro[:, :, :12]
-        if self.fit_k:
-            Jg[:, :, gl["k_g"]] = dr_gyro[:, :, 12:15]
+        if block.globals:
+            Jg = block.reserve(3 * k).reshape(k, 3, Pg)
+            WL = np.einsum("ij,ljm->ilm", self.W_sample, _LOWER)  # (3, 6, 3)
+            Jg[:, :, gl["S_a"]] = -(f @ WL.reshape(-1, 3).T).reshape(k, 3, -1)
+            Jg[:, :, gl["b_a"]] = -self.W_sample
+            if self.fit_k:
+                Jg[:, :, gl["k_a"]] = -self.W_sample * self.dT_acc[:, None, None]
+            # M_g and b_g are adjacent columns, k_g apart (cols_g: their 15, -1 where absent)
+            assert np.array_equal(cols_g[:12], np.arange(gl["M_g"].start, gl["b_g"].stop))
+            Jg[:, :, gl["M_g"].start:gl["b_g"].stop] = dr_gyro[:, :, :12]
+            if self.fit_k:
+                Jg[:, :, gl["k_g"]] = dr_gyro[:, :, 12:15]
         s0 = block(r.ravel(), None)  # its J_g is written
         vals = np.zeros((k, 3, 16))
         vals[:, :, 0:2] = (1 - mu)[:, None, None] * dr_dz
@@ -824,7 +834,7 @@ class JointModel:
         end = lay["where_last"]
         hi[end] = np.einsum("kia,kab->kib", hi[end], dz_dq[j[end]])
         vals[:, :, 2:4] = hi
-        vals[:, :, 4:10] = dr_gyro[:, :, 15:]
+        vals[:, :, 4:10] = dr_gyro[:, :, -6:]
         if "wa" in self.walks:
             vals[:, :, 10:13] = -(1 - lam)[:, :, None] * self.W_sample
             vals[:, :, 13:16] = -lam[:, :, None] * self.W_sample

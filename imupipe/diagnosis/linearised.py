@@ -41,6 +41,8 @@ class Linearised:
     @property
     def system(self) -> Bordered:
         """The normal equations at the solution (built on first use)."""
+        if self.J_g is None:
+            raise ValueError("a fit of the nuisances alone without leverages keeps no J_g (fit's docstring)")
         if self._system is None:
             self._system = Bordered(self.J_g, self.J_l, self.model.stages.offsets)
         return self._system
@@ -92,12 +94,17 @@ def fit(model: JointModel, max_iter: int = 30, x_g: np.ndarray | None = None,
         leverage: bool = True) -> Linearised:
     """Fit ``model`` from its start (or ``x_g``/``x_l``); ``fixed_globals``: only the nuisances
     move (the model's prediction of a given calibration), the leverage still counts the globals;
-    ``leverage=False`` skips the rows' leverages (a fit only its solution is wanted from)."""
+    ``leverage=False`` skips the rows' leverages (a fit only its solution is wanted from); with
+    ``fixed_globals`` too, the globals' Jacobian is never formed (``J_g`` None)."""
     x_g = model.x_g0.copy() if x_g is None else np.asarray(x_g, float)
     x_l = model.x_l0.copy() if x_l is None else np.asarray(x_l, float)
     offsets = model.stages.offsets
-    x_g, x_l, r, J_g, J_l, it, ok = solve_least_squares(model.residuals, x_g, x_l, offsets, max_iter=max_iter,
+    local_only = fixed_globals and not leverage
+    residuals = (lambda g, l: model.residuals(g, l, with_globals=False)) if local_only else model.residuals
+    x_g, x_l, r, J_g, J_l, it, ok = solve_least_squares(residuals, x_g, x_l, offsets, max_iter=max_iter,
                                                         tol=tol, fixed_globals=fixed_globals)
+    if local_only:
+        J_g = None
     lin = Linearised(model, x_g, x_l, r, J_g, J_l, it, ok)
     lin.leverage = lin.system.leverage() if leverage else None
     return lin

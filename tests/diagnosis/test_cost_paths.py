@@ -74,11 +74,18 @@ def test_factored_rate_derivatives_weigh_like_the_dense_ones(model):
 
 def test_fixed_globals_fit_returns_the_jacobian_at_its_optimum(model):
     m, _ = model
-    lin = fit(m, max_iter=3, fixed_globals=True, leverage=False)
+    lin = fit(m, max_iter=3, fixed_globals=True)
     r, J_g, J_l = m.residuals(lin.x_g, lin.x_l)
     assert np.array_equal(lin.r, r) and np.array_equal(lin.J_g, J_g)
     assert (lin.J_l != J_l).nnz == 0
     assert np.array_equal(lin.x_g, m.x_g0)
+    # the nuisances alone (no leverages): the globals' Jacobian is never formed, same solution
+    alone = fit(m, max_iter=3, fixed_globals=True, leverage=False)
+    assert alone.J_g is None
+    assert np.allclose(alone.x_l, lin.x_l, rtol=1e-9, atol=1e-12 * np.abs(lin.x_l).max())
+    r0, J_g0, J_l0 = m.residuals(lin.x_g, lin.x_l, with_globals=False)
+    assert J_g0.shape == (len(r), 0) and np.array_equal(r0, r)
+    assert np.allclose(J_l0.toarray(), J_l.toarray(), rtol=1e-12, atol=1e-12 * np.abs(J_l.data).max())
 
 
 def test_a_model_reusing_anothers_quadrature_is_the_same_model(model):
