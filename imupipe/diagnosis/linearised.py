@@ -82,6 +82,18 @@ class Linearised:
                          "rms": float(np.sqrt(chi2 / rows))}
         return out
 
+    def project(self, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(I - P) C`` for columns ``C`` (N, k) (P the projection onto the Jacobian's span: what
+        the calibration and the nuisances can already fit) and ``z_g`` (P_g, k), the globals'
+        shift per unit of each column. One block-tridiagonal solve for all k columns; the
+        result is formed in place (no N x k temporaries beyond one product)."""
+        C = np.asarray(C, float)
+        z_g, z_l = self.system.solve(self.J_g.T @ C, np.asarray(self.J_l.T @ C))
+        out = C.copy()
+        out -= self.J_g @ z_g
+        out -= self.J_l @ z_l
+        return out, z_g
+
     def variance_of(self, a_g: np.ndarray, a_l: np.ndarray) -> np.ndarray:
         """(k, k) covariance of linear combinations ``a_g x_g + a_l x_l`` (``a_g`` (k, P_g),
         ``a_l`` (k, P_l)) under the fit's inverse normal matrix."""

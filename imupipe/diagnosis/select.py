@@ -223,8 +223,7 @@ def _latitude(th: np.ndarray) -> dict:
 
 def project(lin: Linearised, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(I - P) C`` and the nominal globals' shift per unit of each column, ``z_g`` (P_g, k)."""
-    z_g, z_l = lin.system.solve(lin.J_g.T @ C, lin.J_l.T @ C)
-    return C - lin.J_g @ z_g - lin.J_l @ z_l, z_g
+    return lin.project(C)
 
 
 def examine(lin: Linearised, c: Candidate) -> Tested:
