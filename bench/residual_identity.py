@@ -5,7 +5,7 @@
 
 ``--save`` simulates the session (``imupipe simulate``'s protocol and seed; the standard
 protocol is the 30-minute session of ``bench/residual_cost.py``) into ``REF.d``, runs the
-default pipeline on it, then reruns the map stage alone; ``--check`` reruns the map stage
+default pipeline on it; ``--check`` reruns the map stage
 alone on a copy of ``REF.d``, whose cache holds the stages before it as they were saved (so
 an upstream change, amplified by the fits' stopping rules, does not mask the map's own). Both
 read what the map stage wrote: ``residuals.parquet`` (every sample's prediction, residual
@@ -50,10 +50,10 @@ def _gravity(run: Path) -> float:
 
 
 def produce(folder: Path, protocol: str, seed: int, fresh: bool) -> tuple[dict[str, np.ndarray], dict]:
-    """The map stage's outputs on the session in ``folder`` (simulated and run first when
-    ``fresh``): the map stage is rerun alone (its local gravity set to the value it reads
-    from the calibration anyway: a new cache key, the same numbers) on the stages before it
-    as the cache holds them, so only the map stage's own code is compared."""
+    """The map stage's outputs on the session in ``folder``: simulated and run when ``fresh``;
+    else the map stage is rerun alone (its local gravity set to the value it reads from the
+    calibration anyway: a new cache key, the same numbers) on the stages before it as the
+    cache holds them, so only the map stage's own code is compared."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -64,7 +64,8 @@ def produce(folder: Path, protocol: str, seed: int, fresh: bool) -> tuple[dict[s
         simulate(protocol, {}, seed, session, quiet=True)
         _run(folder, session, out)
     run = out / session.stem
-    _run(folder, session, out, "--set", f"map.g_m_s2={_gravity(run)!r}")
+    if not fresh:  # the saved outputs are the first run's; this key is new to the cache
+        _run(folder, session, out, "--set", f"map.g_m_s2={_gravity(run)!r}")
     table = pq.read_table(run / "residuals.parquet")
     arrays = {}
     for name in table.column_names:
