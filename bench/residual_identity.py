@@ -126,6 +126,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rtol", type=float, default=1e-9)
     args = ap.parse_args()
+    import imupipe  # noqa: F401  (which one: printed below)
+
     if args.save:
         folder = args.save.with_suffix(".d")
         shutil.rmtree(folder, ignore_errors=True)
