@@ -60,13 +60,16 @@ def segmented_scan(q: np.ndarray, seg: np.ndarray) -> np.ndarray:
 
 
 def segmented_cumsum(x: np.ndarray, seg: np.ndarray) -> np.ndarray:
-    """Inclusive cumulative sums of ``x`` (n, ...) along axis 0 restarting at each new ``seg``."""
+    """Inclusive cumulative sums of ``x`` (n, ...) along axis 0 restarting at each new ``seg``
+    (one cumulative sum per run: no running sum carried across runs, which would cost a
+    gather and a subtraction of the whole array and lose digits)."""
+    out = np.empty_like(x)
     if not len(x):
-        return x.copy()
-    c = np.cumsum(x, axis=0)
-    first = np.r_[True, seg[1:] != seg[:-1]]
-    start = np.maximum.accumulate(np.where(first, np.arange(len(seg)), 0))
-    return c - (c[start] - x[start])  # minus the running sum before each run's first element
+        return out
+    bounds = np.flatnonzero(np.r_[True, seg[1:] != seg[:-1], True])
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        np.cumsum(x[a:b], axis=0, out=out[a:b])
+    return out
 
 
 def _integrals(t: np.ndarray, motion: np.ndarray, s: np.ndarray, tau: np.ndarray,
@@ -96,6 +99,33 @@ def _integrals(t: np.ndarray, motion: np.ndarray, s: np.ndarray, tau: np.ndarray
     wts = d[:, None] * np.einsum("km,kmn->kn", mono, coef)
     wts = np.where(valid, wts, 0.0)
     return sp.csr_matrix((wts.ravel(), (np.repeat(np.arange(k), width), idx.ravel())), shape=(k, N))
+
+
+@dataclass(frozen=True)
+class RateDerivatives:
+    """(N, 3, P) derivatives of N calibrated rates w.r.t. P parameters, held as ``coef`` (N, B)
+    times ``basis`` (B, 3, P) with B small (a rate is linear in a few per-sample quantities):
+    weighted sums over samples then cost B columns, not 3 P."""
+
+    coef: np.ndarray
+    basis: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (len(self.coef), *self.basis.shape[1:])
+
+    def __len__(self) -> int:
+        return len(self.coef)
+
+    def dense(self) -> np.ndarray:
+        return (self.coef @ self.basis.reshape(len(self.basis), -1)).reshape(self.shape)
+
+
+def weighted(W: sp.spmatrix, D: np.ndarray | RateDerivatives) -> np.ndarray:
+    """(k, 3, P) ``sum_n W[:, n] D[n]`` for rate derivatives ``D`` (N, 3, P), dense or factored."""
+    if isinstance(D, RateDerivatives):
+        return ((W @ D.coef) @ D.basis.reshape(len(D.basis), -1)).reshape(W.shape[0], 3, -1)
+    return (W @ D.reshape(len(D), -1)).reshape(W.shape[0], 3, -1)
 
 
 @dataclass(frozen=True)
@@ -138,6 +168,9 @@ class Points:
     h: np.ndarray
     tau: np.ndarray
     W: sp.csr_matrix
+
+    def subset(self, idx: np.ndarray) -> Points:
+        return Points(self.h[idx], self.tau[idx], self.W[idx])
 
 
 class Quadrature:
@@ -217,15 +250,19 @@ class Attitude:
         """(S, 3, P) each step's attitude change per unit parameter change, start frame."""
         P = D.shape[2]
         C = self.R_before @ left_jacobian(self.a)
-        return C @ (self.quad.A @ D.reshape(len(D), 3 * P)).reshape(-1, 3, P)
+        return C @ weighted(self.quad.A, D)
 
     def _steps_and_sums(self, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``_per_step(D)`` and its running sums within each motion, kept for the last ``D``
-        (the end-points and the samples of one residual evaluation share them)."""
+        """The running sums of ``_per_step(D)`` within each motion before each step (S, 3, P) and
+        through each motion's last step (m', 3, P), kept for the last ``D`` (the end-points and
+        the samples of one residual evaluation share them)."""
         memo = self.__dict__.get("_memo")
         if memo is None or memo[0] is not D:
             per = self._per_step(D)
-            memo = (D, per, segmented_cumsum(per, self.quad.seg))
+            cum = segmented_cumsum(per, self.quad.seg)
+            last = cum[self.quad.last]
+            cum -= per
+            memo = (D, cum, last)
             object.__setattr__(self, "_memo", memo)
         return memo[1], memo[2]
 
@@ -236,17 +273,18 @@ class Attitude:
         k = len(pts.h)
         if not k or not len(self.a):
             return np.zeros((k, 3, P))
-        per, cum = self._steps_and_sums(D)
+        before_step, _ = self._steps_and_sums(D)
         hh = np.maximum(pts.h, 0)
-        ok = (pts.h >= 0)[:, None, None]
-        before = np.where(ok, cum[hh] - per[hh], 0.0)
+        out = before_step[hh]
         part = self.R_before[hh] @ left_jacobian(pts.W @ self.omega)
-        part = part @ (pts.W @ D.reshape(len(D), 3 * P)).reshape(k, 3, P)
-        return before + np.where(ok, part, 0.0)
+        part = part @ weighted(pts.W, D)
+        out += part
+        out[pts.h < 0] = 0.0
+        return out
 
     def end_sensitivity(self, D: np.ndarray) -> np.ndarray:
         """(m, 3, P) the same at each motion's last sample (zeros for motions without steps)."""
         out = np.zeros((self.quad.samples.count, 3, D.shape[2]))
         if len(self.a):
-            out[self.quad.seg[self.quad.last]] = self._steps_and_sums(D)[1][self.quad.last]
+            out[self.quad.seg[self.quad.last]] = self._steps_and_sums(D)[1]
         return out

@@ -125,10 +125,10 @@ def displacement(model: JointModel, x_g: np.ndarray, x_l: np.ndarray) -> np.ndar
     if not len(acc.t):
         return out
     P = model.unpack(x_g)
-    r = model.residuals(x_g, x_l)[0][model.rows.of("accel_motion")].reshape(-1, 3)
+    r = model.residuals(x_g, x_l, jacobian=False)[0][model.rows.of("accel_motion")].reshape(-1, 3)
     e = np.linalg.solve(model.W_sample, r.T).T  # raw residual
     a_body = e @ np.linalg.inv(P["S_a"]).T  # m/s^2, instrument axes
-    omega, _ = model._rates(P, x_l)
+    omega, _ = model._rates(P, x_l, derivatives=False)
     R = Attitude.integrate(model.quad, omega).rotation_at(model.accel_points)
     a_start = np.einsum("kij,kj->ki", R, a_body)
     for j in np.unique(acc.motion):
@@ -179,12 +179,12 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
     T = rests.temperature
     thermal = bool(np.all(np.isfinite(T)) and len(T) and np.ptp(T) >= THERMAL_SPAN_C)
 
-    def build(sampled_turns: np.ndarray) -> JointModel:
+    def build(sampled_turns: np.ndarray, like: JointModel | None = None) -> JointModel:
         acc = MotionAccel.select(t_a, y_a, rests, kept)
         acc_keep = np.isin(acc.motion, sampled_turns)
         acc = MotionAccel(acc.t[acc_keep], acc.y[acc_keep], acc.motion[acc_keep])
         return JointModel(rests, kept, gravity, start, noise, fit_k=thermal, accel=acc, knot_s=knot_s,
-                          power_on=power, temperature=temperature)
+                          power_on=power, temperature=temperature, like=like)
 
     sampled = np.arange(len(keep))
     model = build(sampled)
@@ -199,8 +199,9 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
                             f"the unit moved about {moved[j]:.2f} m during this motion (not a rotation "
                             "about a fixed point): its samples are left out, its end-points kept"))
     x_l = first.x_l
+    del first  # its Jacobian: the final fit starts from its solution alone
     if carried.any():
-        new = build(sampled[~carried])
+        new = build(sampled[~carried], like=model)
         x_l = _remap(model.stages, new.stages, x_l)
         model = new
     lin = fit(model, max_iter=max_iter, x_l=x_l, fixed_globals=not refit, tol=FIT_TOL)
@@ -278,8 +279,8 @@ def sample_table(model: JointModel, lin: Linearised, streams, rests: Rests, Q: n
     wga, wgb = model.walk_states(lin.x_l, "wg")
     L = {"accel": np.linalg.cholesky(model.noise.accel_sample),
          "gyro": np.linalg.cholesky(model.noise.gyro_sample)}
-    omega_all, _ = model._rates(P, lin.x_l)
-    _, _, _, sig = model.residuals(lin.x_g, lin.x_l, signals=True)
+    omega_all, _ = model._rates(P, lin.x_l, derivatives=False)
+    _, _, _, sig = model.residuals(lin.x_g, lin.x_l, signals=True, jacobian=False)
     for sensor in ("accel", "gyro"):
         t, y = streams[sensor]
         n = len(t)
@@ -311,12 +312,15 @@ def sample_table(model: JointModel, lin: Linearised, streams, rests: Rests, Q: n
             "segment": seg.astype(np.int64), "kind": pa.array(kind.astype(str)),
             "temperature": T, "temperature_rate": np.gradient(T, t) if n > 1 else np.zeros(n),
             "omega_norm": w_norm, "alpha_norm": a_norm,
-            "gravity": pa.array(list(grav), type=pa.list_(pa.float64(), 3)),
-            "predicted": pa.array(list(pred), type=pa.list_(pa.float64(), 3)),
-            "residual": pa.array(list(y - pred), type=pa.list_(pa.float64(), 3)),
-            "whitened": pa.array(list(whit), type=pa.list_(pa.float64(), 3)),
+            "gravity": _triples(grav), "predicted": _triples(pred), "residual": _triples(y - pred),
+            "whitened": _triples(whit),
         }))
     return schemas.stamp(pa.concat_tables(parts), "sample_residuals")
+
+
+def _triples(x: np.ndarray) -> pa.FixedSizeListArray:
+    """(n, 3) float64 as an Arrow column of 3-lists (no Python object per row)."""
+    return pa.FixedSizeListArray.from_arrays(pa.array(np.ascontiguousarray(x, float).ravel()), 3)
 
 
 def _last_power_on(t: np.ndarray, power_times: np.ndarray, t_all: np.ndarray) -> np.ndarray:

@@ -52,7 +52,7 @@ from ..models import T_REF_C
 from ..observations import Rests, Turns
 from ..rotations import skew
 from ..solvers.triad_covariance import shape_basis
-from .attitude import Attitude, MotionSamples, Quadrature
+from .attitude import Attitude, MotionSamples, Points, Quadrature, RateDerivatives
 
 _LOWER = shape_basis("lower")  # (6, 3, 3)
 BLOCKS = ("accel_rest", "gyro_rest", "walk_gyro", "walk_accel", "turn", "accel_motion", "k_prior")
@@ -224,13 +224,15 @@ class JointModel:
     inside the motions (per-sample mode) or None (rest means and turn end-points only);
     ``knot_s``: spacing of the attitude-error knots in per-sample mode; ``power_on`` (n,) bool:
     rest i starts a new power cycle (the walks restart free); ``temperature``: (t, T) arrays
-    for temperatures inside motions (default: the rests' interpolated in time).
+    for temperatures inside motions (default: the rests' interpolated in time). ``like``: a
+    model of the same rests and turns whose quadrature (and, for a subset of its motion
+    samples, their integration weights) this one reuses.
     """
 
     def __init__(self, rests: Rests, turns: Turns, gravity: float, start: Start, noise: Noise,
                  fit_k: bool = False, accel: MotionAccel | None = None, knot_s: float = 0.25,
                  power_on: np.ndarray | None = None,
-                 temperature: tuple[np.ndarray, np.ndarray] | None = None):
+                 temperature: tuple[np.ndarray, np.ndarray] | None = None, like: JointModel | None = None):
         n, m = len(rests), len(turns)
         if n < 1:
             raise SolverError("the joint model needs at least one rest")
@@ -257,8 +259,11 @@ class JointModel:
         self.W_a = _whiteners(self.rest_cov(rests, "accel"))
         self.W_g = _whiteners(self.rest_cov(rests, "gyro"))
         # ---- motions
-        self.motions = MotionSamples.from_turns(turns.t, turns.gyro)
-        self.quad = Quadrature(self.motions)
+        if like is not None:
+            self.motions, self.quad = like.motions, like.quad
+        else:
+            self.motions = MotionSamples.from_turns(turns.t, turns.gyro)
+            self.quad = Quadrature(self.motions)
         ms = self.motions
         self.p, self.qr = np.asarray(turns.before, int), np.asarray(turns.after, int)
         self.dT_gyro = self.temperature_at(ms.t) - T_REF_C
@@ -268,7 +273,7 @@ class JointModel:
         self.accel = accel if accel is not None else MotionAccel(np.zeros(0), np.zeros((0, 3)),
                                                                  np.zeros(0, np.int64))
         self.dT_acc = self.temperature_at(self.accel.t) - T_REF_C
-        self.accel_points = self.quad.points(self.accel.t, self.accel.motion)
+        self.accel_points = self._points(like)
         self.lam_acc = self._walk_fraction(self.accel.t, self.accel.motion, gap_start, gap_len)
         self.W_sample = _whiteners(noise.accel_sample)
         # ---- knots: (m,) intervals per motion, their times
@@ -300,6 +305,19 @@ class JointModel:
         self.rows = self._rows()
 
     # ------------------------------------------------------------------ helpers
+    def _points(self, like: JointModel | None) -> Points:
+        """The motion samples' integration weights; a subset of ``like``'s rows when its samples
+        hold ours (the weights are computed row by row, so the subset is exact)."""
+        acc = self.accel
+        if like is not None and len(acc.t) <= len(like.accel.t):
+            key = like.accel.motion * 1e9 + like.accel.t  # motions, then times: sorted
+            idx = np.searchsorted(key, acc.motion * 1e9 + acc.t)
+            idx = np.minimum(idx, max(len(key) - 1, 0))
+            if len(key) and np.array_equal(like.accel.t[idx], acc.t) and \
+                    np.array_equal(like.accel.motion[idx], acc.motion):
+                return like.accel_points.subset(idx)
+        return self.quad.points(acc.t, acc.motion)
+
     def rest_cov(self, rests: Rests, sensor: str) -> np.ndarray:
         """(n, 3, 3) covariance of each rest's mean reading about the model's: the samples'
         noise averaged, plus the bias walk's wander about its mean over the rest (a Brownian
@@ -369,9 +387,10 @@ class JointModel:
         u, du = _normalise(self.u0 + np.einsum("nij,nj->ni", self.B, d))
         return u, du @ self.B
 
-    def _rates(self, P: dict, x_l: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _rates(self, P: dict, x_l: np.ndarray, derivatives: bool = True) -> tuple[np.ndarray, RateDerivatives | None]:
         """Calibrated rates (N, 3) of the motions' gyro samples and their derivatives (N, 3, 21)
-        w.r.t. (M_g (9), b_g (3), k_g (3), walk at the motion's start (3), at its end (3))."""
+        w.r.t. (M_g (9), b_g (3), k_g (3), walk at the motion's start (3), at its end (3)),
+        factored (``attitude.RateDerivatives``); ``derivatives=False``: None for them."""
         ms = self.motions
         N = len(ms)
         wa, wb = self.walk_states(x_l, "wg")
@@ -380,21 +399,23 @@ class JointModel:
         walk = (1 - lam) * wb[self.p[j]] + lam * wa[self.qr[j]] if N else np.zeros((0, 3))
         e = ms.y - P["b_g"] - np.outer(self.dT_gyro, P["k_g"]) - walk
         omega = e @ P["M_g"].T
-        D = np.zeros((N, 3, 21))
-        for i in range(3):
-            D[:, i, 3 * i:3 * i + 3] = e
-        D[:, :, 9:12] = -P["M_g"]
-        D[:, :, 12:15] = -P["M_g"] * self.dT_gyro[:, None, None]
-        D[:, :, 15:18] = -P["M_g"] * (1 - lam)[:, :, None]
-        D[:, :, 18:21] = -P["M_g"] * lam[:, :, None]
-        return omega, D
+        if not derivatives:
+            return omega, None
+        # d omega / d M_g[i, c] = e_c along axis i; the rest is -M_g times 1, dT, 1 - lam, lam
+        basis = np.zeros((7, 3, 21))
+        for c in range(3):
+            basis[c, np.arange(3), 3 * np.arange(3) + c] = 1.0
+        for b in range(4):
+            basis[3 + b, :, 9 + 3 * b:12 + 3 * b] = -P["M_g"]
+        coef = np.column_stack([e, np.ones(N), self.dT_gyro, 1 - lam[:, 0], lam[:, 0]])
+        return omega, RateDerivatives(coef, basis)
 
     def _knot_whiteners(self) -> list[np.ndarray]:
         """Per motion, (K_j, 2, 2) whiteners of the attitude-path increments: the gyro's white noise
         integrated over each knot interval, tilt part in the start rest's tangent plane, plus the
         gyro walk's wander about its interpolation across the motion (``q T^3 / 12`` in all)."""
         P = self.unpack(self.x_g0)
-        omega, _ = self._rates(P, self.x_l0_zero())
+        omega, _ = self._rates(P, self.x_l0_zero(), derivatives=False)
         att = Attitude.integrate(self.quad, omega)
         ms = self.motions
         Sg = P["M_g"] @ self.noise.gyro_sample @ P["M_g"].T
@@ -432,7 +453,7 @@ class JointModel:
         x = np.zeros(self.stages.size)
         if not self.m or not self.sampled:
             return x
-        zK = self._endpoints(self.unpack(self.x_g0), x)[0]
+        zK = self._endpoints(self.unpack(self.x_g0), x, jacobian=False)[0]
         for j in range(self.m):
             K = self.K[j]
             if K > 1:
@@ -440,15 +461,21 @@ class JointModel:
                 x[self.stages.knot_start[self.p[j]] + np.arange(2 * (K - 1))] = np.outer(frac, zK[j]).ravel()
         return x
 
-    def _endpoints(self, P: dict, x_l: np.ndarray):
-        """Gnomonic end-point ``z_K`` (m, 2) of every motion and what it needs for derivatives."""
-        omega, D = self._rates(P, x_l)
+    def _endpoints(self, P: dict, x_l: np.ndarray, jacobian: bool = True, with_globals: bool = True):
+        """Gnomonic end-point ``z_K`` (m, 2) of every motion and what it needs for derivatives
+        (``jacobian=False``: None for ``dz_gyro``, ``dz_dq`` and ``D``; ``with_globals=False``:
+        the rate derivatives and ``dz_gyro`` hold the 6 walk columns only)."""
+        omega, D = self._rates(P, x_l, derivatives=jacobian)
+        if D is not None and not with_globals:
+            D = RateDerivatives(D.coef, D.basis[:, :, 15:])
         att = Attitude.integrate(self.quad, omega)
         u, du = self.gravity(x_l)
         w = np.einsum("mij,mj->mi", att.total, u[self.qr]) if self.m else np.zeros((0, 3))
         u0p, Bp = self.u0[self.p], self.B[self.p]
         den = np.einsum("mi,mi->m", u0p, w)
         zK = np.einsum("mia,mi->ma", Bp, w) / den[:, None]
+        if not jacobian:
+            return zK, None, None, att, None, omega, u, du
         G = (np.swapaxes(Bp, 1, 2) - np.einsum("ma,mi->mai", zK, u0p)) / den[:, None, None]  # dz/dw
         phi_T = att.end_sensitivity(D)  # (m, 3, 21)
         dz_gyro = np.einsum("mai,mij,mjp->map", G, -skew(w), phi_T)  # (m, 2, 21)
@@ -461,7 +488,7 @@ class JointModel:
         after's, ``rotation`` (m, 3, 3), ``sigma_gyro`` (m,) rad, the RMS 1-sigma per component
         of the attitude error the gyro's noise leaves at the end."""
         P = self.unpack(x_g)
-        omega, _ = self._rates(P, x_l)
+        omega, _ = self._rates(P, x_l, derivatives=False)
         R = Attitude.integrate(self.quad, omega).total
         u = self.gravity(x_l)[0]
         pred = np.einsum("mji,mj->mi", R, u[self.p]) if self.m else np.zeros((0, 3))
@@ -522,29 +549,50 @@ class JointModel:
         return np.array(prev), np.array(nxt), np.maximum(np.array(dts), 1e-9), np.array(mids)
 
     # ------------------------------------------------------------------ residuals
-    def residuals(self, x_g: np.ndarray, x_l: np.ndarray, signals: bool = False):
+    def residuals(self, x_g: np.ndarray, x_l: np.ndarray, signals: bool = False, jacobian: bool = True,
+                  with_globals: bool = True):
         """Whitened residual ``r`` (N,), ``J_g`` (N, P_g) dense, ``J_l`` (N, P_l) CSR; with
-        ``signals`` also a dict of the model's intermediate quantities (predictions, gravity)."""
+        ``signals`` also a dict of the model's intermediate quantities (predictions, gravity);
+        ``jacobian=False``: the residual alone (None for both Jacobians, far cheaper);
+        ``with_globals=False``: ``J_g`` has no columns (a fit of the nuisances alone)."""
         P = self.unpack(x_g)
         n, g, gl = self.n, self.g, self.glob.slices
         Pg, Pl = self.glob.size, self.stages.size
         S_a = P["S_a"]
-        r_parts, Jg_parts, trip = [], [], []
+        r_parts, trip = [], []
         row0 = 0
+        # the globals' Jacobian is written in place, block by block (no stacked copy)
+        J_g = np.zeros((len(self.rows.block), Pg if with_globals else 0)) if jacobian else None
 
-        def block(r: np.ndarray, Jg: np.ndarray) -> int:
+        def block(r: np.ndarray, Jg: np.ndarray | None) -> int:
+            """Append rows ``r`` and their ``Jg`` (None: zero, or already written through
+            ``block.reserve``); returns their first row."""
             nonlocal row0
             r_parts.append(r)
-            Jg_parts.append(Jg)
+            if jacobian and with_globals and Jg is not None:
+                J_g[row0:row0 + len(r)] = Jg
             start = row0
             row0 += len(r)
             return start
 
+        block.reserve = lambda n: J_g[row0:row0 + n]  # the next n rows' J_g, to fill in place
+        block.globals = with_globals
+
         def local(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray) -> None:
+            if not jacobian:
+                return
             keep = cols >= 0
             trip.append((rows[keep].ravel(), cols[keep].ravel(), vals[keep].ravel()))
 
-        zK, dz_gyro, dz_dq, att, D, omega, u, du = self._endpoints(P, x_l) if self.m else \
+        def flat(where, vals: np.ndarray) -> None:
+            """Entries ``vals`` (kept ones only) whose rows and columns ``where()`` returns (a
+            constant pattern: asked for only until the model knows J_l's sparsity)."""
+            if jacobian:
+                trip.append((where, None, vals))
+
+        local.flat = flat
+
+        zK, dz_gyro, dz_dq, att, D, omega, u, du = self._endpoints(P, x_l, jacobian, with_globals) if self.m else \
             (None,) * 6 + self.gravity(x_l)
         wga, wgb = self.walk_states(x_l, "wg")
         waa, wab = self.walk_states(x_l, "wa")
@@ -586,13 +634,14 @@ class JointModel:
             sq = np.sqrt(self.q[w][None, :] * dts[:, None])  # (k, 3)
             xn = x_l[nxt[:, None] + np.arange(3)]
             xp = np.where(prev[:, None] >= 0, x_l[np.maximum(prev, 0)[:, None] + np.arange(3)], 0.0)
-            s0 = block(((xn - xp) / sq).ravel(), np.zeros((3 * k, Pg)))
+            s0 = block(((xn - xp) / sq).ravel(), None)
             rows = s0 + 3 * np.arange(k)[:, None] + np.arange(3)
             local(rows, nxt[:, None] + np.arange(3), 1.0 / sq)
             local(rows, np.where(prev[:, None] >= 0, prev[:, None] + np.arange(3), -1), -1.0 / sq)
         sig = {"pred_accel_rest": pred_a, "pred_gyro_rest": pred_g, "gravity_rest": u}
         if self.m:
-            self._motion_rows(P, x_l, zK, dz_gyro, dz_dq, att, D, omega, u, du, block, local, sig)
+            self._motion_rows(P, x_l, zK, dz_gyro, dz_dq, att, D, omega, u, du, block, local, sig, jacobian)
+        del att, D  # the attitude's sensitivities: not needed past the motions' rows
         # ---- temperature-coefficient prior
         if len(self.k_prior):
             k_all = np.concatenate([P["k_a"], P["k_g"]])
@@ -601,11 +650,33 @@ class JointModel:
             Jg[np.arange(len(self.k_prior)), ks + self.k_prior] = self.k_prior_w
             block((k_all - self.k0)[self.k_prior] * self.k_prior_w, Jg)
         r = np.concatenate(r_parts)
-        J_g = np.vstack(Jg_parts)
-        rr, cc, vv = (np.concatenate([t[i] for t in trip]) for i in range(3)) if trip else (
-            np.zeros(0, int),) * 2 + (np.zeros(0),)
-        J_l = sp.csr_matrix((vv, (rr, cc)), shape=(len(r), Pl))
+        if not jacobian:
+            return (r, None, None, sig) if signals else (r, None, None)
+        if len(r) != len(J_g):
+            raise AssertionError("row metadata and residual rows disagree")
+        vv = np.concatenate([t[2] for t in trip]) if trip else np.zeros(0)
+        J_l = self._local_jacobian(trip, vv, len(r), Pl)
         return (r, J_g, J_l, sig) if signals else (r, J_g, J_l)
+
+    def _local_jacobian(self, trip: list, vv: np.ndarray, N: int, Pl: int) -> sp.csr_matrix:
+        """J_l (N, Pl) CSR from the entries' values ``vv``. Its sparsity does not change between
+        evaluations: the first one sorts the entries into CSR order and keeps that order (when no
+        entry repeats a row and column), later ones only permute the values."""
+        pat = self.__dict__.get("_jl_pattern")
+        if pat is None or pat[0] != len(vv):
+            rc = [t[0]() if t[1] is None else (t[0], t[1]) for t in trip]
+            rr = np.concatenate([x[0] for x in rc]) if rc else np.zeros(0, np.int64)
+            cc = np.concatenate([x[1] for x in rc]) if rc else np.zeros(0, np.int64)
+            order = np.lexsort((cc, rr))
+            rs, cs = rr[order], cc[order]
+            if len(rs) > 1 and np.any((rs[1:] == rs[:-1]) & (cs[1:] == cs[:-1])):  # repeats add up
+                return sp.csr_matrix((vv, (rr, cc)), shape=(N, Pl))
+            idx = np.int32 if max(N, Pl, len(vv)) < 2**31 else np.int64
+            indptr = np.r_[0, np.cumsum(np.bincount(rs, minlength=N))].astype(idx)
+            pat = (len(vv), order.astype(idx), cs.astype(idx), indptr)
+            self.__dict__["_jl_pattern"] = pat
+        _, order, indices, indptr = pat
+        return sp.csr_matrix((vv[order], indices, indptr), shape=(N, Pl))
 
     def _gyro_cols(self, j: np.ndarray) -> tuple[list[tuple[str | None, np.ndarray]], np.ndarray]:
         """Where the 21 rate-derivative columns of motions ``j`` go: globals M_g, b_g, [k_g], and
@@ -622,7 +693,8 @@ class JointModel:
             cols_l = np.full((len(j), 6), -1)
         return cols_g, cols_l
 
-    def _motion_rows(self, P, x_l, zK, dz_gyro, dz_dq, att, D, omega, u, du, block, local, sig) -> None:
+    def _motion_rows(self, P, x_l, zK, dz_gyro, dz_dq, att, D, omega, u, du, block, local, sig,
+                     jac: bool = True) -> None:
         m, Pg = self.m, self.glob.size
         cols_g, cols_l = self._gyro_cols(np.arange(m))
         gsel = cols_g >= 0
@@ -634,9 +706,15 @@ class JointModel:
             z = np.vstack([x_l[self.stages.delta[p]], interior, zK[j]])
             W = self.Qk_w[j]  # (K, 2, 2)
             r = np.einsum("kab,kb->ka", W, z[1:] - z[:-1])
-            Jg = np.zeros((K, 2, Pg))
-            Jg[-1][:, cols_g[gsel]] = (W[-1] @ dz_gyro[j])[:, :15][:, gsel]
-            s0 = block(r.ravel(), Jg.reshape(2 * K, Pg))
+            if not jac:
+                block(r.ravel(), None)
+                continue
+            if block.globals:
+                Jg = np.zeros((K, 2, Pg))
+                Jg[-1][:, cols_g[gsel]] = (W[-1] @ dz_gyro[j])[:, :15][:, gsel]
+                s0 = block(r.ravel(), Jg.reshape(2 * K, Pg))
+            else:
+                s0 = block(r.ravel(), None)
             rows = s0 + 2 * np.arange(K)[:, None] + np.arange(2)  # (K, 2)
             knot_cols = np.vstack([self.stages.delta[p], ks + np.arange(2 * (K - 1)).reshape(K - 1, 2),
                                    np.full((1, 2), -2)])  # -2: the end-point (a function)
@@ -650,20 +728,23 @@ class JointModel:
             local(np.repeat(rows[-1][:, None], 2, 1), np.repeat(self.stages.delta[q][None, :], 2, 0),
                   Wl @ dz_dq[j])
             local(np.repeat(rows[-1][:, None], 6, 1), np.repeat(cols_l[j][None, :], 2, 0),
-                  (Wl @ dz_gyro[j])[:, 15:])
+                  (Wl @ dz_gyro[j])[:, -6:])
         if not (self.sampled and len(self.accel.t)):
             return
-        self._sample_rows(P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, cols_l)
+        self._sample_rows(P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, cols_l, jac)
 
-    def _sample_rows(self, P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, cols_l):
+    def _sample_layout(self, cols_l: np.ndarray) -> dict[str, np.ndarray]:
+        """What the motion samples' rows need that does not change between evaluations (kept):
+        each sample's knot interval ``kidx`` and weight ``mu``, and the local columns of its
+        row's entries (k, 16): the knot (or rest direction) before and after it (2 each), the
+        gyro walk at the motion's ends (6), the accelerometer walk at them (6); -1 for none."""
+        lay = self.__dict__.get("_layout")
+        if lay is not None:
+            return lay
         acc = self.accel
         k = len(acc.t)
         j = acc.motion
         p, q = self.p[j], self.qr[j]
-        Pg, gl, g, S_a = self.glob.size, self.glob.slices, self.g, P["S_a"]
-        R = att.rotation_at(self.accel_points)  # (k, 3, 3)
-        Phi = att.sensitivity(D, self.accel_points)  # (k, 3, 21)
-        # knot interval and weight
         kidx = np.zeros(k, int)
         mu = np.zeros(k)
         for jj in np.unique(j):
@@ -672,6 +753,32 @@ class JointModel:
             ki = np.clip(np.searchsorted(kt, acc.t[sel], "right") - 1, 0, self.K[jj] - 1)
             kidx[sel] = ki
             mu[sel] = np.clip((acc.t[sel] - kt[ki]) / (kt[ki + 1] - kt[ki]), 0, 1)
+        Kj = self.K[j]
+        ks = self.stages.knot_start[p]
+        delta = self.stages.delta
+        cols = np.full((k, 16), -1, np.int64)
+        cols[:, 0:2] = np.where((kidx == 0)[:, None], delta[p], (ks + 2 * (kidx - 1))[:, None] + np.arange(2))
+        last = kidx + 1 == Kj  # the knot after is the end-point, a function of the next rest's direction
+        cols[:, 2:4] = np.where(last[:, None], delta[q], (ks + 2 * kidx)[:, None] + np.arange(2))
+        cols[:, 4:10] = cols_l[j]
+        if "wa" in self.walks:
+            a, b = self.stages.walk_cols["wa"]
+            cols[:, 10:13] = b[p][:, None] + np.arange(3)
+            cols[:, 13:16] = np.where(a[q][:, None] >= 0, a[q][:, None] + np.arange(3), -1)
+        keep = np.broadcast_to((cols >= 0)[:, None, :], (k, 3, 16))
+        lay = {"kidx": kidx, "mu": mu, "where_last": np.flatnonzero(last), "keep": keep, "cols": cols}
+        self.__dict__["_layout"] = lay
+        return lay
+
+    def _sample_rows(self, P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, cols_l, jac=True):
+        acc = self.accel
+        k = len(acc.t)
+        j = acc.motion
+        p, q = self.p[j], self.qr[j]
+        Pg, gl, g, S_a = self.glob.size, self.glob.slices, self.g, P["S_a"]
+        R = att.rotation_at(self.accel_points)  # (k, 3, 3)
+        lay = self._sample_layout(cols_l)
+        kidx, mu = lay["kidx"], lay["mu"]
         Kj = self.K[j]
         ks = self.stages.knot_start[p]
 
@@ -689,47 +796,52 @@ class JointModel:
         nvec, dn = _normalise(u0p + (Bp @ z[:, :, None])[:, :, 0])
         Rt = np.swapaxes(R, 1, 2)  # (stacked matmul: far faster than einsum here)
         ub = (Rt @ nvec[:, :, None])[:, :, 0]  # gravity in the body at the sample
-        Uz = Rt @ dn @ Bp  # d ub / d z  (k, 3, 2)
-        Uphi = Rt @ skew(nvec)  # d ub / d phi (k, 3, 3)
         lam = self.lam_acc[:, None]
         waa, wab = self.walk_states(x_l, "wa")
         walk = (1 - lam) * wab[p] + lam * waa[q]
         f = g * ub
         pred = self.accel_prediction(P, f, acc.t, walk)
         r = (acc.y - pred) @ self.W_sample.T
+        sig.update(pred_accel_motion=pred, gravity_motion=ub)
+        if not jac:
+            block(r.ravel(), None)
+            return
+        Phi = att.sensitivity(D, self.accel_points)  # (k, 3, 21), or (k, 3, 6) the walks' alone
+        Uz = Rt @ dn @ Bp  # d ub / d z  (k, 3, 2)
+        Uphi = Rt @ skew(nvec)  # d ub / d phi (k, 3, 3)
         WS = -g * self.W_sample @ S_a  # d r / d ub
-        Jg = np.zeros((k, 3, Pg))
-        WL = np.einsum("ij,ljm->ilm", self.W_sample, _LOWER)  # (3, 6, 3)
-        Jg[:, :, gl["S_a"]] = -(f @ WL.reshape(-1, 3).T).reshape(k, 3, -1)
-        Jg[:, :, gl["b_a"]] = -self.W_sample
-        if self.fit_k:
-            Jg[:, :, gl["k_a"]] = -self.W_sample * self.dT_acc[:, None, None]
         dr_dz = WS @ Uz  # (k, 3, 2)
         dr_gyro = (WS @ Uphi) @ Phi  # (k, 3, 21)
-        at_end = kidx + 1 == Kj
+        del Phi, Uphi
+        at_end = lay["where_last"]
         dr_gyro[at_end] += mu[at_end, None, None] * np.einsum("kia,kap->kip", dr_dz[at_end], dz_gyro[j[at_end]])
-        gsel = cols_g >= 0
-        Jg[:, :, cols_g[gsel]] += dr_gyro[:, :, :15][:, :, gsel]
-        s0 = block(r.ravel(), Jg.reshape(3 * k, Pg))
-        rows = s0 + 3 * np.arange(k)[:, None] + np.arange(3)
-        rows2 = np.repeat(rows[:, :, None], 2, 2)
-        for idx, wgt in ((kidx, 1 - mu), (kidx + 1, mu)):
-            first, last = idx == 0, idx == Kj
-            mid = ~first & ~last
-            vals = wgt[:, None, None] * dr_dz
-            local(rows2[first], np.repeat(self.stages.delta[p[first]][:, None, :], 3, 1), vals[first])
-            mc = (ks[mid] + 2 * (idx[mid] - 1))[:, None] + np.arange(2)
-            local(rows2[mid], np.repeat(mc[:, None, :], 3, 1), vals[mid])
-            dq = np.einsum("kia,kab->kib", vals[last], dz_dq[j[last]])
-            local(rows2[last], np.repeat(self.stages.delta[q[last]][:, None, :], 3, 1), dq)
-        cl = cols_l[j]  # (k, 6)
-        local(np.repeat(rows[:, :, None], 6, 2), np.repeat(cl[:, None, :], 3, 1), dr_gyro[:, :, 15:])
+        if block.globals:
+            Jg = block.reserve(3 * k).reshape(k, 3, Pg)
+            WL = np.einsum("ij,ljm->ilm", self.W_sample, _LOWER)  # (3, 6, 3)
+            Jg[:, :, gl["S_a"]] = -(f @ WL.reshape(-1, 3).T).reshape(k, 3, -1)
+            Jg[:, :, gl["b_a"]] = -self.W_sample
+            if self.fit_k:
+                Jg[:, :, gl["k_a"]] = -self.W_sample * self.dT_acc[:, None, None]
+            # M_g and b_g are adjacent columns, k_g apart (cols_g: their 15, -1 where absent)
+            assert np.array_equal(cols_g[:12], np.arange(gl["M_g"].start, gl["b_g"].stop))
+            Jg[:, :, gl["M_g"].start:gl["b_g"].stop] = dr_gyro[:, :, :12]
+            if self.fit_k:
+                Jg[:, :, gl["k_g"]] = dr_gyro[:, :, 12:15]
+        s0 = block(r.ravel(), None)  # its J_g is written
+        vals = np.zeros((k, 3, 16))
+        vals[:, :, 0:2] = (1 - mu)[:, None, None] * dr_dz
+        hi = mu[:, None, None] * dr_dz
+        end = lay["where_last"]
+        hi[end] = np.einsum("kia,kab->kib", hi[end], dz_dq[j[end]])
+        vals[:, :, 2:4] = hi
+        vals[:, :, 4:10] = dr_gyro[:, :, -6:]
         if "wa" in self.walks:
-            a, b = self.stages.walk_cols["wa"]
-            cb = b[p][:, None] + np.arange(3)
-            ca = np.where(a[q][:, None] >= 0, a[q][:, None] + np.arange(3), -1)
-            local(np.repeat(rows[:, :, None], 3, 2), np.repeat(cb[:, None, :], 3, 1),
-                  -(1 - lam)[:, :, None] * self.W_sample)
-            local(np.repeat(rows[:, :, None], 3, 2), np.repeat(ca[:, None, :], 3, 1),
-                  -lam[:, :, None] * self.W_sample)
-        sig.update(pred_accel_motion=pred, gravity_motion=ub)
+            vals[:, :, 10:13] = -(1 - lam)[:, :, None] * self.W_sample
+            vals[:, :, 13:16] = -lam[:, :, None] * self.W_sample
+        keep = lay["keep"]
+
+        def where() -> tuple[np.ndarray, np.ndarray]:
+            rows = np.broadcast_to((s0 + 3 * np.arange(k)[:, None] + np.arange(3))[:, :, None], (k, 3, 16))
+            return rows[keep], np.broadcast_to(lay["cols"][:, None, :], (k, 3, 16))[keep]
+
+        local.flat(where, vals[keep])

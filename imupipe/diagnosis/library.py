@@ -109,13 +109,17 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
     out = []
     for lib in libraries(s):
         n = len(lib.rows)
-        dy = np.zeros((n, 3, len(lib.columns)))
+        # d r / d theta on the library's rows: column c moves raw axis i only, so it is the
+        # whitener's column i times the regressor (no (n, 3, k) raw-derivative array)
+        C = np.empty((n, 3, len(lib.columns)))
         for c, (i, _, x, _) in enumerate(lib.columns):
-            dy[:, i, c] = x
-        spec = "ij,njk->nik" if lib.W.ndim == 2 else "nij,njk->nik"
+            C[:, :, c] = -(lib.W[..., :, i] * x[:, None])
+        C = C.reshape(3 * n, -1)
         rows = lib.rows.ravel()
-        C = -np.einsum(spec, lib.W, dy).reshape(3 * n, -1)  # d r / d theta on the library's rows
-        JgC, JlC = lin.J_g[rows].T @ C, np.asarray(lin.J_l[rows].T @ C)
+        # the rows of a block are contiguous: a slice is a view of J_g, an index list a copy
+        at = slice(rows[0], rows[-1] + 1) if len(rows) and rows[-1] - rows[0] + 1 == len(rows) and \
+            np.all(np.diff(rows) == 1) else rows
+        JgC, JlC = lin.J_g[at].T @ C, np.asarray(lin.J_l[at].T @ C)
         z_g, z_l = lin.system.solve(JgC, JlC)
         # C'(I - P)C and C'(I - P)r without forming (I - P)C, which would fill every row
         gram = C.T @ C
@@ -157,7 +161,9 @@ def _score(lib: _Library, axes, sel, gram, proj, h, scale, C, t_rows, unit) -> S
     score = D.T @ hn
     stat = float(np.sum(score ** 2 / vis[ok]))
     theta = -D @ (score / vis[ok])  # the fitted library term (normalised coordinates)
-    contrib = (C[:, idx] @ (theta / d)) ** 2
+    w = np.zeros(C.shape[1])
+    w[idx] = theta / d
+    contrib = (C @ w) ** 2  # (no copy of the selected columns)
     # the signals the structure follows: marginal t of each projected column, largest first
     bjj = np.diag(B)
     shown = bjj >= VISIBLE_MIN  # a column the nominal model absorbs has no t of its own

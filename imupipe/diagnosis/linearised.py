@@ -35,8 +35,17 @@ class Linearised:
     J_l: sp.csr_matrix
     iterations: int
     converged: bool
-    system: Bordered = field(repr=False)
     leverage: np.ndarray = field(repr=False, default=None)  # type: ignore[assignment]
+    _system: Bordered | None = field(repr=False, default=None)
+
+    @property
+    def system(self) -> Bordered:
+        """The normal equations at the solution (built on first use)."""
+        if self.J_g is None:
+            raise ValueError("a fit of the nuisances alone without leverages keeps no J_g (fit's docstring)")
+        if self._system is None:
+            self._system = Bordered(self.J_g, self.J_l, self.model.stages.offsets)
+        return self._system
 
     @property
     def rows(self) -> Rows:
@@ -73,6 +82,18 @@ class Linearised:
                          "rms": float(np.sqrt(chi2 / rows))}
         return out
 
+    def project(self, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(I - P) C`` for columns ``C`` (N, k) (P the projection onto the Jacobian's span: what
+        the calibration and the nuisances can already fit) and ``z_g`` (P_g, k), the globals'
+        shift per unit of each column. One block-tridiagonal solve for all k columns; the
+        result is formed in place (no N x k temporaries beyond one product)."""
+        C = np.asarray(C, float)
+        z_g, z_l = self.system.solve(self.J_g.T @ C, np.asarray(self.J_l.T @ C))
+        out = C.copy()
+        out -= self.J_g @ z_g
+        out -= self.J_l @ z_l
+        return out, z_g
+
     def variance_of(self, a_g: np.ndarray, a_l: np.ndarray) -> np.ndarray:
         """(k, k) covariance of linear combinations ``a_g x_g + a_l x_l`` (``a_g`` (k, P_g),
         ``a_l`` (k, P_l)) under the fit's inverse normal matrix."""
@@ -85,22 +106,17 @@ def fit(model: JointModel, max_iter: int = 30, x_g: np.ndarray | None = None,
         leverage: bool = True) -> Linearised:
     """Fit ``model`` from its start (or ``x_g``/``x_l``); ``fixed_globals``: only the nuisances
     move (the model's prediction of a given calibration), the leverage still counts the globals;
-    ``leverage=False`` skips the rows' leverages (a fit only its solution is wanted from)."""
+    ``leverage=False`` skips the rows' leverages (a fit only its solution is wanted from); with
+    ``fixed_globals`` too, the globals' Jacobian is never formed (``J_g`` None)."""
     x_g = model.x_g0.copy() if x_g is None else np.asarray(x_g, float)
     x_l = model.x_l0.copy() if x_l is None else np.asarray(x_l, float)
     offsets = model.stages.offsets
-    if fixed_globals:
-        def res(_g, xl):
-            r, Jg, Jl = model.residuals(x_g, xl)
-            return r, Jg[:, :0], Jl
-
-        _, x_l, r, _, J_l, it, ok = solve_least_squares(res, np.zeros(0), x_l, offsets, max_iter=max_iter,
-                                                         tol=tol)
-        r, J_g, J_l = model.residuals(x_g, x_l)
-    else:
-        x_g, x_l, r, J_g, J_l, it, ok = solve_least_squares(model.residuals, x_g, x_l, offsets,
-                                                            max_iter=max_iter, tol=tol)
-    system = Bordered(J_g, J_l, offsets)
-    lin = Linearised(model, x_g, x_l, r, J_g, J_l, it, ok, system)
-    lin.leverage = system.leverage() if leverage else None
+    local_only = fixed_globals and not leverage
+    residuals = (lambda g, l: model.residuals(g, l, with_globals=False)) if local_only else model.residuals
+    x_g, x_l, r, J_g, J_l, it, ok = solve_least_squares(residuals, x_g, x_l, offsets, max_iter=max_iter,
+                                                        tol=tol, fixed_globals=fixed_globals)
+    if local_only:
+        J_g = None
+    lin = Linearised(model, x_g, x_l, r, J_g, J_l, it, ok)
+    lin.leverage = lin.system.leverage() if leverage else None
     return lin

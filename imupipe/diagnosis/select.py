@@ -106,7 +106,7 @@ class Signals:
         self.lin, self.model = lin, model
         P = model.unpack(lin.x_g)
         self.S_a = P["S_a"]
-        _, _, _, sig = model.residuals(lin.x_g, lin.x_l, signals=True)
+        _, _, _, sig = model.residuals(lin.x_g, lin.x_l, signals=True, jacobian=False)
         g = model.g
         self.f_rest = g * sig["gravity_rest"]  # (n, 3) model frame
         self.T_rest = model.dT + 25.0
@@ -118,7 +118,7 @@ class Signals:
         self.has_motion = len(acc.t) > 0
         if self.has_motion:
             self.f_motion = g * sig["gravity_motion"]
-            omega, _ = model._rates(P, lin.x_l)
+            omega, _ = model._rates(P, lin.x_l, derivatives=False)
             ms = model.motions
             self.omega = np.zeros((len(acc.t), 3))
             self.alpha = np.zeros((len(acc.t), 3))
@@ -226,8 +226,7 @@ def _latitude(th: np.ndarray) -> dict:
 
 def project(lin: Linearised, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(I - P) C`` and the nominal globals' shift per unit of each column, ``z_g`` (P_g, k)."""
-    z_g, z_l = lin.system.solve(lin.J_g.T @ C, lin.J_l.T @ C)
-    return C - lin.J_g @ z_g - lin.J_l @ z_l, z_g
+    return lin.project(C)
 
 
 def examine(lin: Linearised, c: Candidate) -> Tested:

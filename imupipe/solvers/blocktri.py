@@ -134,6 +134,56 @@ class BlockTridiagonal:
             Zd[i] = 0.5 * (Zd[i] + Zd[i].T)
         return Zd, Zl
 
+    def row_forms(self, J: sp.csr_matrix, chunk: int = 8192) -> np.ndarray:
+        """(N,) ``diag(J A^-1 J^T)`` for a sparse ``J`` whose rows touch two consecutive stages
+        at most, from the selected inverse: per row, the quadratic form of its few entries with
+        the inverse's block on their columns. Consecutive rows on the same columns (the samples
+        of one knot interval) share that block; nothing of size N x q is formed."""
+        J = sp.csr_matrix(J)
+        if not J.has_canonical_format:
+            J = J.copy()
+            J.sum_duplicates()
+        N = J.shape[0]
+        counts = np.diff(J.indptr)
+        if not N or not J.nnz:
+            return np.zeros(N)
+        Zd, Zl = self.selected_inverse()
+        o = self.offsets
+        n = np.diff(o)
+        width = int(counts.max())
+        row = np.repeat(np.arange(N), counts)
+        pos = np.arange(J.nnz) - J.indptr[row]
+        cols = np.full((N, width), -1, np.int64)
+        vals = np.zeros((N, width))
+        cols[row, pos] = J.indices
+        vals[row, pos] = J.data
+        start = np.r_[True, np.any(cols[1:] != cols[:-1], axis=1)]
+        run = np.cumsum(start) - 1
+        c = cols[start]  # (R, width) the columns of each run of rows
+        # the inverse's entries on each run's column pairs, from the stage blocks
+        flat_d = np.concatenate([z.ravel() for z in Zd]) if Zd else np.zeros(0)
+        flat_l = np.concatenate([z.ravel() for z in Zl] + [np.zeros(0)])
+        base_d = np.r_[0, np.cumsum([z.size for z in Zd])][:-1].astype(np.int64)
+        base_l = np.r_[0, np.cumsum([z.size for z in Zl])].astype(np.int64)
+        stage = np.searchsorted(o, np.maximum(c, 0), "right") - 1
+        within = np.maximum(c, 0) - o[stage]
+        s1, s2 = stage[:, :, None], stage[:, None, :]
+        w1, w2 = within[:, :, None], within[:, None, :]
+        real = (c[:, :, None] >= 0) & (c[:, None, :] >= 0)
+        Zr = np.zeros((len(c), width, width))
+        m = real & (s1 == s2)
+        Zr[m] = flat_d[(base_d[s1] + w1 * n[s1] + w2)[m]]
+        m = real & (s1 == s2 + 1)  # block (s2 + 1, s2) = Zl[s2], shape (n[s2 + 1], n[s2])
+        Zr[m] = flat_l[(base_l[np.maximum(s2, 0)] + w1 * n[np.maximum(s2, 0)] + w2)[m]]
+        m = real & (s2 == s1 + 1)  # its transpose
+        Zr[m] = flat_l[(base_l[np.maximum(s1, 0)] + w2 * n[np.maximum(s1, 0)] + w1)[m]]
+        out = np.empty(N)
+        for a in range(0, N, chunk):
+            b = min(a + chunk, N)
+            v = vals[a:b, :, None]
+            out[a:b] = (np.swapaxes(v, 1, 2) @ (Zr[run[a:b]] @ v))[:, 0, 0]
+        return out
+
     def selected_sparse(self) -> sp.csr_matrix:
         """``selected_inverse`` as a sparse symmetric (N, N) matrix (zero outside the pattern)."""
         Zd, Zl = self.selected_inverse()
@@ -207,9 +257,8 @@ class Bordered:
     def leverage(self) -> np.ndarray:
         """(N,) ``diag(J A^-1 J^T)``, exact: ``a^T A_ll^-1 a + (g - X^T a)^T S^-1 (g - X^T a)``
         per row, the first term from the selected inverse (rows touch two stages at most)."""
-        Z = self.blocks.selected_sparse()
         J_l = self.J_l
-        local = np.asarray((J_l @ Z).multiply(J_l).sum(axis=1)).ravel()
+        local = self.blocks.row_forms(J_l)
         Gt = self.J_g - np.asarray(J_l @ self.X)
         if not len(self.S):
             return local
@@ -218,32 +267,36 @@ class Bordered:
 
 
 def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np.ndarray,
-                        max_iter: int = 30, tol: float = 1e-10):
+                        max_iter: int = 30, tol: float = 1e-10, fixed_globals: bool = False):
     """Levenberg-Marquardt on ``residuals(x_g, x_l) -> (r, J_g, J_l)``.
 
     Returns ``(x_g, x_l, r, J_g, J_l, iterations, converged)`` at the optimum. Converged when
     the relative decrease of the cost falls below ``tol``; then one undamped Gauss-Newton step
-    polishes the solution (the damping would otherwise leave it ~1e-8 short).
+    polishes the solution (the damping would otherwise leave it ~1e-8 short). ``fixed_globals``:
+    only the locals move; ``J_g`` is still returned at the optimum.
     """
+    def step(J_g: np.ndarray, J_l: sp.csr_matrix, r: np.ndarray, lam: float) -> tuple[np.ndarray, np.ndarray]:
+        d_g, d_l = Bordered(J_g[:, :0] if fixed_globals else J_g, J_l, offsets, damping=lam).step(r)
+        return (np.zeros(len(x_g)) if fixed_globals else d_g), d_l
+
     r, J_g, J_l = residuals(x_g, x_l)
     cost = float(r @ r)
     lam = 1e-6
     converged = False
     it = 0
     for it in range(1, max_iter + 1):
-        system = Bordered(J_g, J_l, offsets, damping=lam)
-        d_g, d_l = system.step(r)
+        d_g, d_l = step(J_g, J_l, r, lam)
         while True:
             cand_g, cand_l = x_g + d_g, x_l + d_l
             r2, J_g2, J_l2 = residuals(cand_g, cand_l)
             cost2 = float(r2 @ r2)
             if np.isfinite(cost2) and cost2 <= cost:
                 break
+            del r2, J_g2, J_l2
             lam *= 10.0
             if lam > 1e8:
                 return x_g, x_l, r, J_g, J_l, it, converged
-            system = Bordered(J_g, J_l, offsets, damping=lam)
-            d_g, d_l = system.step(r)
+            d_g, d_l = step(J_g, J_l, r, lam)
         decrease = (cost - cost2) / max(cost, 1e-300)
         x_g, x_l, r, J_g, J_l, cost = cand_g, cand_l, r2, J_g2, J_l2, cost2
         lam = max(lam / 10.0, 1e-12)
@@ -251,7 +304,7 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
             converged = True
             break
     if converged:  # an undamped Gauss-Newton step lands on the optimum (quadratic convergence)
-        d_g, d_l = Bordered(J_g, J_l, offsets).step(r)
+        d_g, d_l = step(J_g, J_l, r, 0.0)
         r2, J_g2, J_l2 = residuals(x_g + d_g, x_l + d_l)
         if np.isfinite(r2 @ r2) and float(r2 @ r2) <= cost:
             x_g, x_l, r, J_g, J_l = x_g + d_g, x_l + d_l, r2, J_g2, J_l2

@@ -227,7 +227,7 @@ class JointML:
         cov = cov * inflation
         M_a, M_g = np.linalg.inv(P["S_a"]), P["M_g"]
         u = model.gravity(lin.x_l)[0]
-        omega, _ = model._rates(P, lin.x_l)
+        omega, _ = model._rates(P, lin.x_l, derivatives=False)
         R = Attitude.integrate(model.quad, omega).total
         if params.keep_frame:
             M_a, M_g = Q.T @ M_a, Q.T @ M_g

@@ -96,7 +96,7 @@ def rest_residuals(rests: Rests, fit: JointFit) -> pa.Table:
     then z given x and y); accel ``norm_error_*``: |g| error of the raw and calibrated mean."""
     lin = fit.linearised
     model = lin.model
-    _, _, _, sig = model.residuals(lin.x_g, lin.x_l, signals=True)
+    _, _, _, sig = model.residuals(lin.x_g, lin.x_l, signals=True, jacobian=False)
     mid = 0.5 * (rests.t_start_s + rests.t_end_s)
     tables = []
     for sensor, block, pred in (("accel", "accel_rest", sig["pred_accel_rest"]),

@@ -1,0 +1,103 @@
+"""The residual engine's cheap paths give the numbers of the plain ones: the residual without its
+Jacobian, the factored rate derivatives, J_l from its cached sparsity, the fixed-globals fit's
+Jacobian, the reused quadrature (issue 13: results identical within 1e-9 relative)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from forward_synth import G, noise_free_imu, rests_from_truth, small_gimbal
+
+from imupipe.diagnosis.attitude import Attitude, weighted
+from imupipe.diagnosis.forward import JointModel, MotionAccel, Noise, Start
+from imupipe.diagnosis.linearised import fit
+
+
+def _model(out, truth, q):
+    rests, turns = rests_from_truth(out, truth)
+    cal = truth.calibration
+    start = Start(np.linalg.inv(cal["accel"].M), cal["accel"].b0, cal["gyro"].M, cal["gyro"].b0,
+                  cal["accel"].k, cal["gyro"].k)
+    noise = Noise(np.eye(3) * 5e-3**2, np.eye(3) * 3.5e-4**2, np.full(3, q[0]), np.full(3, q[1]))
+    acc = MotionAccel.select(out.t, out.raw["accel"], rests, turns)
+    return JointModel(rests, turns, G, start, noise, fit_k=True, accel=acc, knot_s=0.25,
+                      temperature=(out.t, out.temperature))
+
+
+@pytest.fixture(scope="module")
+def model():
+    out, truth = small_gimbal(3, noise_free_imu(3))
+    return _model(out, truth, q=(1e-9, 1e-10)), out
+
+
+def _point(model, seed=0):
+    rng = np.random.default_rng(seed)
+    x_g = model.x_g0 + 1e-3 * rng.normal(size=model.glob.size) * np.abs(model.x_g0).clip(1e-2)
+    return x_g, 1e-3 * rng.normal(size=model.stages.size)
+
+
+def test_the_residual_alone_and_the_signals_equal_the_full_evaluation(model):
+    m, _ = model
+    x_g, x_l = _point(m)
+    r, J_g, J_l, sig = m.residuals(x_g, x_l, signals=True)
+    r0, none_g, none_l, sig0 = m.residuals(x_g, x_l, signals=True, jacobian=False)
+    assert none_g is None and none_l is None
+    assert np.array_equal(r, r0)
+    for key, value in sig.items():
+        assert np.array_equal(value, sig0[key]), key
+
+
+def test_local_jacobian_from_the_cached_sparsity_equals_a_fresh_one(model):
+    m, _ = model
+    x_g, x_l = _point(m, 1)
+    _, _, cached = m.residuals(x_g, x_l)  # the pattern is already cached by earlier calls
+    m.__dict__.pop("_jl_pattern", None)
+    _, _, fresh = m.residuals(x_g, x_l)
+    assert (cached != fresh).nnz == 0
+    assert np.array_equal(cached.indptr, fresh.indptr) and np.array_equal(cached.indices, fresh.indices)
+
+
+def test_factored_rate_derivatives_weigh_like_the_dense_ones(model):
+    m, _ = model
+    x_g, x_l = _point(m, 2)
+    omega, D = m._rates(m.unpack(x_g), x_l)
+    dense = D.dense()
+    assert dense.shape == (len(m.motions), 3, 21)
+    W = m.quad.A
+    got, want = weighted(W, D), weighted(W, dense)
+    assert np.allclose(got, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
+    att = Attitude.integrate(m.quad, omega)
+    s1 = att.sensitivity(D, m.accel_points)
+    s2 = Attitude.integrate(m.quad, omega).sensitivity(dense, m.accel_points)
+    assert np.allclose(s1, s2, rtol=1e-12, atol=1e-12 * np.abs(s2).max())
+
+
+def test_fixed_globals_fit_returns_the_jacobian_at_its_optimum(model):
+    m, _ = model
+    lin = fit(m, max_iter=3, fixed_globals=True)
+    r, J_g, J_l = m.residuals(lin.x_g, lin.x_l)
+    assert np.array_equal(lin.r, r) and np.array_equal(lin.J_g, J_g)
+    assert (lin.J_l != J_l).nnz == 0
+    assert np.array_equal(lin.x_g, m.x_g0)
+    # the nuisances alone (no leverages): the globals' Jacobian is never formed, same solution
+    alone = fit(m, max_iter=3, fixed_globals=True, leverage=False)
+    assert alone.J_g is None
+    assert np.allclose(alone.x_l, lin.x_l, rtol=1e-9, atol=1e-12 * np.abs(lin.x_l).max())
+    r0, J_g0, J_l0 = m.residuals(lin.x_g, lin.x_l, with_globals=False)
+    assert J_g0.shape == (len(r), 0) and np.array_equal(r0, r)
+    assert np.allclose(J_l0.toarray(), J_l.toarray(), rtol=1e-12, atol=1e-12 * np.abs(J_l.data).max())
+
+
+def test_a_model_reusing_anothers_quadrature_is_the_same_model(model):
+    m, out = model
+    acc = m.accel
+    keep = acc.motion != acc.motion[0]  # one motion's samples dropped (as a carried motion is)
+    sub = MotionAccel(acc.t[keep], acc.y[keep], acc.motion[keep])
+    args = (m.rests, m.turns, m.g, m.start, m.noise)
+    kw = dict(fit_k=m.fit_k, accel=sub, knot_s=0.25, temperature=(out.t, out.temperature))
+    fresh, reused = JointModel(*args, **kw), JointModel(*args, **kw, like=m)
+    assert reused.quad is m.quad
+    assert (fresh.accel_points.W != reused.accel_points.W).nnz == 0
+    assert np.array_equal(fresh.accel_points.h, reused.accel_points.h)
+    x_g, x_l = fresh.x_g0, fresh.x_l0
+    assert np.array_equal(fresh.residuals(x_g, x_l)[0], reused.residuals(x_g, x_l)[0])
