@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from imupipe.diagnosis.select import NONCENTRALITY_80
+from imupipe.diagnosis.select import NONCENTRALITY_80, VISIBLE_MIN
 from imupipe.pipeline.api import run_sessions
 from imupipe.sim.api import simulate
 
@@ -95,7 +95,7 @@ def one_seed(args: tuple[str, int, list[str], float, str]) -> dict:
     mde = {}
     for t in null["tested"]:
         e = t["effect"]
-        if e in effects and t["visible_fraction"] >= 0.05 and t["sensor"] == SENSOR.get(e, "accel"):
+        if e in effects and t["visible_fraction"] >= VISIBLE_MIN and t["sensor"] == SENSOR.get(e, "accel"):
             d = direction(e)
             lam = d @ np.asarray(t["information"]) @ d
             mde[e] = min(mde.get(e, np.inf), float(np.sqrt(NONCENTRALITY_80 / lam)) if lam > 0 else np.inf)

@@ -13,14 +13,15 @@ import numpy as np
 
 from .evaluate import Evaluation
 from .residual_map import windows
-from .select import REVEAL, UNTESTED, VISIBLE_MIN, Q_FDR, Finding, candidates, heldout, select, examine
+from .select import REVEAL, UNTESTED, VISIBLE_MIN, Q_FDR, Finding, candidates, examine, heldout, rigid_walks, select
 
 AXES = ("x", "y", "z")
 
 
 def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str = "", q: float = Q_FDR) -> dict:
     lin = ev.lin
-    tested = [examine(lin, c) for c in candidates(lin, ev.frame, effects)]
+    rigid = rigid_walks(lin)
+    tested = [examine(lin, c, rigid) for c in candidates(lin, ev.frame, effects)]
     rp, accepted = select(lin, tested, q)
     findings, not_confirmed = [], []
     for i, f in enumerate(accepted):

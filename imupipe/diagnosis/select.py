@@ -6,9 +6,12 @@ rest means and motion samples, gyro rest means. Everything the nominal model can
 do is projected off (``Cp = (I - P) C`` with ``P`` the projector on the calibration's and
 the nuisances' Jacobian, through the fit's own block-tridiagonal system), so
 
-- the **visible fraction** ``|Cp|^2 / |C|^2`` (smallest over the term's directions) says
+- the **visible fraction** ``|Cv| / |C|`` (the memo's ``|P_perp z| / |z|``, smallest over the
+  term's directions; ``Cv`` projected with the bias walks held still, ``rigid_walks``) says
   whether this recording can tell the effect from the nominal parameters at all; below
-  ``VISIBLE_MIN`` it goes to ``not_identifiable`` with the parameters it would bias;
+  ``VISIBLE_MIN`` it goes to ``not_identifiable`` with the parameters it would bias. What the
+  walks can mimic on top is a loss of power, counted in the information and the minimum
+  detectable size (from ``Cp``, the walks free under their prior), not a concealment;
 - the **score statistic** ``r' Cp (Cp' Cp)^-1 Cp' r`` is chi-square with the term's
   dimension under the null (scaled by the affected rows' chi2/dof when that exceeds 1,
   so an under-modelled noise floor does not pass for physics);
@@ -28,13 +31,18 @@ tested here yet: ``untested`` lists them with the reason.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
 from scipy import stats
 from scipy.signal import savgol_filter
 
+from ..models import T_REF_C
 from ..rotations import skew
+from ..solvers.blocktri import Bordered
 from .linearised import Linearised
 from .residual_map import benjamini_hochberg
 
@@ -43,6 +51,8 @@ Q_FDR = 0.05
 FOLDS = 5
 WARMUP_TAUS_S = (30.0, 120.0, 600.0)
 NONCENTRALITY_80 = 7.85  # chi2_1 noncentrality for 80 % power at alpha = 0.05
+RIGID = 1e3  # weight on the walks' increments when the visible fraction is measured (q / 1e6)
+GYRO_STEP = 1e-7  # rad/s: the largest perturbation of a gyro sample when differencing a term's column
 UNTESTED = {
     "gyro_scale_asymmetry": "acts through the attitude integration inside motions (not in the score model yet)",
     "gyro_saturation": "acts through the attitude integration inside motions (not in the score model yet)",
@@ -94,7 +104,12 @@ def _rows3(lin: Linearised, block: str) -> np.ndarray:
 
 
 class Signals:
-    """What the candidates' regressors need, read once off the fitted model."""
+    """What the candidates' regressors need, read once off the fitted model: at the rests (their
+    means), at the accelerometer samples inside the motions (``*_motion``) and at the gyro samples
+    the motions' attitude is integrated from (``*_gyro_motion``). A term acts on every reading,
+    so its column covers all three: a bias-like term left out of the motions is one the bias walk
+    can copy at the rests for free (the walk moves the motions' readings too), and its score
+    collapses."""
 
     def __init__(self, lin: Linearised):
         model = lin.model
@@ -104,13 +119,34 @@ class Signals:
         _, _, _, sig = model.residuals(lin.x_g, lin.x_l, signals=True)
         g = model.g
         self.f_rest = g * sig["gravity_rest"]  # (n, 3) model frame
-        self.T_rest = model.dT + 25.0
+        self.T_rest = model.dT + T_REF_C
         self.rows_a, self.rows_g = _rows3(lin, "accel_rest"), _rows3(lin, "gyro_rest")
         self.W_a, self.W_g = model.W_a, model.W_g
-        self.t_on_rest = model.mid - model.mid[0] + 0.5 * model.length[0]
-        acc = model.accel
+        t_first = model.mid[0] - 0.5 * model.length[0]
+        self.t_on_rest = model.mid - t_first
+        acc, ms = model.accel, model.motions
         self.rows_m = _rows3(lin, "accel_motion")
         self.has_motion = len(acc.t) > 0
+        self.has_gyro_motion = len(ms.t) > 0
+        self.T_motion = model.dT_acc + T_REF_C
+        self.t_on_motion = acc.t - t_first
+        self.T_gyro_motion = model.dT_gyro + T_REF_C
+        self.t_on_gyro_motion = ms.t - t_first
+        u = sig["gravity_rest"]
+        u_g = np.zeros((len(ms.t), 3))  # gravity at the gyro's samples: the accel samples' path, or
+        for j in range(ms.count):  # the rests' directions across a motion without samples
+            sel = ms.motion == j
+            if not sel.any():
+                continue
+            sa = acc.motion == j if self.has_motion else np.zeros(0, bool)
+            if sa.sum() >= 2:
+                u_g[sel] = np.column_stack([np.interp(ms.t[sel], acc.t[sa], sig["gravity_motion"][sa, i])
+                                            for i in range(3)])
+            else:
+                span = max(ms.end[j] - ms.origin[j], 1e-12)
+                lam = np.clip((ms.t[sel] - ms.origin[j]) / span, 0, 1)[:, None]
+                u_g[sel] = (1 - lam) * u[model.p[j]] + lam * u[model.qr[j]]
+        self.f_gyro_motion = g * u_g / np.maximum(np.linalg.norm(u_g, axis=1, keepdims=True), 1e-12)
         if self.has_motion:
             self.f_motion = g * sig["gravity_motion"]
             omega, _ = model._rates(P, lin.x_l)
@@ -137,6 +173,43 @@ class Signals:
         spec = "ij,njk->nik" if W.ndim == 2 else "nij,njk->nik"
         C[rows.ravel()] = -np.einsum(spec, W, dy).reshape(-1, dy.shape[2])
         return C
+
+    def accel_term(self, regressors) -> np.ndarray:
+        """(N, k) the column of an accelerometer term on the rest means and the motions' samples;
+        ``regressors(at)`` gives d y / d theta (n, 3, k) with ``at`` "rest" or "motion"."""
+        C = self.column(self.rows_a, self.W_a, regressors("rest"))
+        if self.has_motion:
+            C = C + self.column(self.rows_m, self.model.W_sample, regressors("motion"))
+        return C
+
+    def gyro_term(self, regressors) -> np.ndarray:
+        """(N, k) the column of a gyro term on the rest means and, through the attitude the motions'
+        gyro samples integrate to, on the motions' rows (``regressors(at)``, at "rest" or
+        "gyro_motion")."""
+        C = self.column(self.rows_g, self.W_g, regressors("rest"))
+        if self.has_gyro_motion:
+            C = C + self.gyro_motion_column(regressors("gyro_motion"))
+        return C
+
+    def gyro_motion_column(self, dy: np.ndarray) -> np.ndarray:
+        """(N, k) d r / d theta of a term ``dy`` (N_g, 3, k) added to the motions' gyro samples: the
+        model's own residuals, differenced (central, a perturbation far below the noise)."""
+        model, lin = self.model, self.lin
+        out = np.zeros((len(lin.r), dy.shape[2]))
+        for j in range(dy.shape[2]):
+            d = dy[:, :, j]
+            size = float(np.abs(d).max()) if d.size else 0.0
+            if size == 0:
+                continue
+            h = GYRO_STEP / size
+
+            def r_at(step: float) -> np.ndarray:
+                m = copy.copy(model)
+                m.motions = dataclasses.replace(model.motions, y=model.motions.y + step * d)
+                return m.residuals(lin.x_g, lin.x_l)[0]
+
+            out[:, j] = -(r_at(h) - r_at(-h)) / (2 * h)  # the term in the prediction: r falls
+        return out
 
 
 def _derivative(y: np.ndarray, t: np.ndarray, span_s: float = 0.1) -> np.ndarray:
@@ -166,55 +239,75 @@ def candidates(lin: Linearised, frame: np.ndarray, registry) -> list[Candidate]:
         C = s.column(s.rows_m, s.model.W_sample, np.einsum("ij,njk->nik", s.S_a, R))
         out.append(Candidate("accel_gyro_time_offset", "accel", "motion", ["dt_s"], C,
                              lambda th: {"dt_s": float(th[0])}))
+    # the terms below act on every reading: rest means, the motions' accelerometer samples and
+    # (gyro) the samples the motions' attitude is integrated from
+    x_at = {"rest": s.f_rest @ s.S_a.T, "motion": s.f_motion @ s.S_a.T if s.has_motion else np.zeros((0, 3))}
+    T_at = {"rest": s.T_rest, "motion": s.T_motion, "gyro_motion": s.T_gyro_motion}
+    t_on_at = {"rest": s.t_on_rest, "motion": s.t_on_motion, "gyro_motion": s.t_on_gyro_motion}
+    f_at = {"rest": s.f_rest, "gyro_motion": s.f_gyro_motion}
+
+    def term(sensor: str, regressors) -> np.ndarray:
+        return s.accel_term(regressors) if sensor == "accel" else s.gyro_term(regressors)
+
     if "accel_nonlinearity" in eff:
-        x_r = s.f_rest @ s.S_a.T
-        C = s.column(s.rows_a, s.W_a, eff["accel_nonlinearity"].regressors({"x": x_r}))
-        if s.has_motion:
-            C = C + s.column(s.rows_m, s.model.W_sample,
-                             eff["accel_nonlinearity"].regressors({"x": s.f_motion @ s.S_a.T}))
+        C = s.accel_term(lambda at: eff["accel_nonlinearity"].regressors({"x": x_at[at]}))
         out.append(Candidate("accel_nonlinearity", "accel", "all", ["k2_x", "k2_y", "k2_z"], C,
                              lambda th: {"k2": list(th)}))
     if "accel_scale_temperature" in eff:
-        x_r = s.f_rest @ s.S_a.T
-        C = s.column(s.rows_a, s.W_a, eff["accel_scale_temperature"].regressors({"x": x_r, "T": s.T_rest}))
+        C = s.accel_term(lambda at: eff["accel_scale_temperature"].regressors({"x": x_at[at], "T": T_at[at]}))
         out.append(Candidate("accel_scale_temperature", "accel", "static", ["ppm_x", "ppm_y", "ppm_z"], C,
                              lambda th: {"ppm_per_C": list(th)}))
     if "bias_temperature_nonlinear" in eff:
-        R = eff["bias_temperature_nonlinear"].regressors({"T": s.T_rest})
-        for sensor, rows, W in (("accel", s.rows_a, s.W_a), ("gyro", s.rows_g, s.W_g)):
-            out.append(Candidate("bias_temperature_nonlinear", sensor, "static", ["k2_x", "k2_y", "k2_z"],
-                                 s.column(rows, W, R),
+        for sensor in ("accel", "gyro"):
+            C = term(sensor, lambda at: eff["bias_temperature_nonlinear"].regressors({"T": T_at[at]}))
+            out.append(Candidate("bias_temperature_nonlinear", sensor, "static", ["k2_x", "k2_y", "k2_z"], C,
                                  lambda th, sensor=sensor: {"k2_per_C2": list(th), "sensor": sensor}))
     if "gyro_g_sensitivity" in eff:
-        R = eff["gyro_g_sensitivity"].regressors({"f": s.f_rest})
-        C = s.column(s.rows_g, s.W_g, R)
+        C = s.gyro_term(lambda at: eff["gyro_g_sensitivity"].regressors({"f": f_at[at]}))
         out.append(Candidate("gyro_g_sensitivity", "gyro", "static", [f"G{i}{j}" for i in range(3) for j in range(3)],
                              C, lambda th: {"G": (th.reshape(3, 3) @ Q).tolist()}))
     if "warmup_transient" in eff:
-        for sensor, rows, W in (("accel", s.rows_a, s.W_a), ("gyro", s.rows_g, s.W_g)):
+        for sensor in ("accel", "gyro"):
             for tau in WARMUP_TAUS_S:
-                R = eff["warmup_transient"].regressors({"t_on": s.t_on_rest}, {"amp": [0, 0, 0], "tau_s": tau,
-                                                                                "sensor": sensor})
-                out.append(Candidate("warmup_transient", sensor, "warmup", ["amp_x", "amp_y", "amp_z"],
-                                     s.column(rows, W, R),
+                p = {"amp": [0, 0, 0], "tau_s": tau, "sensor": sensor}
+                C = term(sensor, lambda at, p=p: eff["warmup_transient"].regressors({"t_on": t_on_at[at]}, p))
+                out.append(Candidate("warmup_transient", sensor, "warmup", ["amp_x", "amp_y", "amp_z"], C,
                                      lambda th, sensor=sensor, tau=tau: {"amp": list(th), "tau_s": tau,
                                                                          "sensor": sensor},
                                      extra_dof=len(WARMUP_TAUS_S), fixed={"tau_s": tau}))
     return [c for c in out if np.any(c.columns)]
 
 
-def project(lin: Linearised, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(I - P) C`` and the nominal globals' shift per unit of each column, ``z_g`` (P_g, k)."""
-    z_g, z_l = lin.system.solve(lin.J_g.T @ C, lin.J_l.T @ C)
-    return C - lin.J_g @ z_g - lin.J_l @ z_l, z_g
+def project(lin: Linearised, C: np.ndarray, system: Bordered | None = None,
+            J_l: sp.csr_matrix | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(I - P) C`` and the nominal globals' shift per unit of each column, ``z_g`` (P_g, k);
+    ``system``/``J_l``: another normal system of the same Jacobian (``rigid_walks``)."""
+    system = lin.system if system is None else system
+    J_l = lin.J_l if J_l is None else J_l
+    z_g, z_l = system.solve(lin.J_g.T @ C, J_l.T @ C)
+    return C - lin.J_g @ z_g - J_l @ z_l, z_g
 
 
-def examine(lin: Linearised, c: Candidate) -> Tested:
+def rigid_walks(lin: Linearised) -> tuple[Bordered, sp.csr_matrix]:
+    """The fit's normal system with the bias walks held (nearly) still: their increments' rows
+    weighted ``RIGID``-fold. What a term loses to this projection the nominal *parameters* make
+    (calibration, gravity directions, a new turn-on bias after a power cycle): the visible
+    fraction. What the walks take on top is noise they can mimic: it costs power (the
+    information and minimum detectable size say how much), it does not hide the term."""
+    walk = lin.rows.of("walk_gyro") | lin.rows.of("walk_accel")
+    J_l = (sp.diags(np.where(walk, RIGID, 1.0)) @ lin.J_l).tocsr()
+    return Bordered(lin.J_g, J_l, lin.model.stages.offsets), J_l
+
+
+def examine(lin: Linearised, c: Candidate, rigid: tuple[Bordered, sp.csr_matrix] | None = None) -> Tested:
+    """The candidate's projection, visible fraction (against ``rigid``, default the fit's own
+    system), the parameters it would bias and its minimum detectable size."""
     Cp, z_g = project(lin, c.columns)
+    Cv = project(lin, c.columns, *rigid)[0] if rigid is not None else Cp
     A, B = c.columns.T @ c.columns, Cp.T @ Cp
     L = np.linalg.cholesky(A + 1e-300 * np.eye(len(A)))
     Li = np.linalg.inv(L)
-    visible = float(np.clip(np.linalg.eigvalsh(Li @ B @ Li.T).min(), 0, 1))
+    visible = float(np.sqrt(np.clip(np.linalg.eigvalsh(Li @ (Cv.T @ Cv) @ Li.T).min(), 0, 1)))
     names = lin.globals.names()
     strength = np.abs(z_g).max(axis=1)
     biases = [(names[i], float(strength[i])) for i in np.argsort(strength)[::-1][:3] if strength[i] > 0]
