@@ -42,6 +42,7 @@ from scipy.signal import savgol_filter
 
 from ..models import T_REF_C
 from ..rotations import skew
+from ..errors import SolverError
 from ..solvers.blocktri import Bordered
 from .linearised import Linearised
 from .residual_map import benjamini_hochberg
@@ -409,18 +410,87 @@ def raw_units(lin: Linearised, r: np.ndarray) -> dict[str, np.ndarray]:
     return out
 
 
-def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]) -> tuple[float, float]:
-    """Blocked cross-validated RMS (sensor units) of the finding's sensor rows without and with
-    its term (others already accepted are in both): folds of whole rests and motions."""
+def _fold_of_rows(lin: Linearised) -> np.ndarray:
+    """(N,) the fold of every data row (-1: prior rows, in every training set): ``FOLDS``
+    contiguous stretches of time, each rest and each motion whole in one of them."""
     model = lin.model
-    groups = np.full(len(rp), -1)
+    groups = np.full(len(lin.r), -1)
     for name in ("accel_rest", "gyro_rest"):
         rows = _rows3(lin, name)
         groups[rows] = np.arange(len(rows))[:, None]
     rm = _rows3(lin, "accel_motion")
     if len(rm):
         groups[rm] = (model.n + model.accel.motion)[:, None]
-    fold = np.where(groups >= 0, (groups * 7919) % FOLDS, -1)
+    used = groups >= 0
+    t_group = np.bincount(groups[used], lin.rows.t[used]) / np.maximum(np.bincount(groups[used]), 1)
+    present = np.bincount(groups[used]) > 0
+    rank = np.full(len(t_group), -1)
+    order = np.flatnonzero(present)[np.argsort(t_group[present], kind="stable")]
+    rank[order] = np.arange(len(order))
+    fold = np.full(len(lin.r), -1)
+    fold[used] = rank[groups[used]] * FOLDS // max(len(order), 1)
+    return fold
+
+
+def _refit_predict(lin: Linearised, X: np.ndarray, k_base: int, train: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The residual on every row after a Gauss-Newton refit of the globals, every nuisance and the
+    term columns ``X`` (N, k) to the ``train`` rows (the priors always count): without the last
+    ``k - k_base`` columns and with them. One factorisation of the nuisances' system serves both."""
+    w = train.astype(float)
+    Jg = np.hstack([lin.J_g, X]) * w[:, None]
+    Jl = (sp.diags(w) @ lin.J_l).tocsr()
+    system = Bordered(Jg, Jl, lin.model.stages.offsets)
+    rw = lin.r * w
+    g_g, g_l = -(Jg.T @ rw), -np.asarray(Jl.T @ rw)
+    y = system.blocks.solve(g_l)
+    out = []
+    for P in (lin.J_g.shape[1] + k_base, Jg.shape[1]):
+        S = system.S[:P, :P]
+        x_g = np.linalg.solve(S, g_g[:P] - system.A_lg[:, :P].T @ y)
+        x_l = y - system.X[:, :P] @ x_g
+        out.append(lin.r + np.hstack([lin.J_g, X])[:, :P] @ x_g + lin.J_l @ x_l)
+    return out[0], out[1]
+
+
+def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]) -> tuple[float, float]:
+    """Blocked cross-validated RMS (sensor units) of the finding's sensor rows without and with
+    its term (others already accepted are in both). The folds are ``FOLDS`` contiguous stretches
+    of time (whole rests and motions); for each, the calibration, every nuisance (the bias walks,
+    gravity directions, attitude paths) and the terms are refitted without it (one linearised
+    step) and its rows predicted: a bias walk fitted to the rows it is judged on would pass for
+    any slow term there, and bridges interleaved folds as well as the term does."""
+    fold = _fold_of_rows(lin)
+    base = [f.tested.candidate.columns for f in others]
+    X = np.hstack(base + [finding.tested.candidate.columns])
+    k_base = X.shape[1] - finding.tested.candidate.columns.shape[1]
+    before, after = np.zeros_like(rp), np.zeros_like(rp)
+    try:
+        for k in range(FOLDS):
+            test = fold == k
+            if not test.any():
+                continue
+            b, a = _refit_predict(lin, X, k_base, ~test)
+            if not (np.all(np.isfinite(b[test])) and np.all(np.isfinite(a[test]))):
+                raise SolverError("a fold leaves a nuisance undetermined")
+            before[test], after[test] = b[test], a[test]
+    except (np.linalg.LinAlgError, SolverError):  # a fold whose removal leaves a nuisance free
+        return _heldout_projected(lin, rp, finding, others)
+    return _sensor_rms(lin, finding, before, after)
+
+
+def _sensor_rms(lin: Linearised, finding: Finding, before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
+    sensor = finding.tested.candidate.sensor
+    rows = np.any(finding.tested.candidate.columns != 0, axis=1)
+    e0, _ = raw_units(lin, np.where(rows, before, 0))[sensor]
+    e1, _ = raw_units(lin, np.where(rows, after, 0))[sensor]
+    used = np.any(e0 != 0, axis=1)
+    rms = lambda e: float(np.sqrt(np.mean(e[used] ** 2))) if used.any() else float("nan")  # noqa: E731
+    return rms(e0), rms(e1)
+
+
+def _heldout_projected(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]) -> tuple[float, float]:
+    """The fallback: folds of the projected columns fitted to the nominal model's residual."""
+    fold = _fold_of_rows(lin)
     base = np.hstack([f.tested.projected for f in others]) if others else np.zeros((len(rp), 0))
     full = np.hstack([base, finding.tested.projected])
     before, after = np.zeros_like(rp), np.zeros_like(rp)
@@ -429,10 +499,4 @@ def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Find
         for X, out in ((base, before), (full, after)):
             theta = np.linalg.lstsq(X[train], rp[train], rcond=None)[0] if X.shape[1] else np.zeros(0)
             out[test] = rp[test] - X[test] @ theta
-    sensor = finding.tested.candidate.sensor
-    rows = np.any(finding.tested.candidate.columns != 0, axis=1)
-    e0, g0 = raw_units(lin, np.where(rows, before, 0))[sensor]
-    e1, _ = raw_units(lin, np.where(rows, after, 0))[sensor]
-    used = np.any(e0 != 0, axis=1)
-    rms = lambda e: float(np.sqrt(np.mean(e[used] ** 2))) if used.any() else float("nan")  # noqa: E731
-    return rms(e0), rms(e1)
+    return _sensor_rms(lin, finding, before, after)
