@@ -102,7 +102,10 @@ def one_seed(args: tuple[str, int, list[str], float, str]) -> dict:
     runs = []
     for e in effects:
         if e not in mde or not np.isfinite(mde[e]):
-            runs.append({"effect": e, "skipped": "not visible on this protocol"})
+            why = [n for n in null["not_identifiable"] if n["effect"] == e and n["sensor"] == SENSOR.get(e, "accel")]
+            runs.append({"effect": e, "skipped": "not identifiable on this protocol" + (
+                f" (visible {why[0]['visible_fraction']:.1%}, absorbed by {', '.join(why[0]['biases'])}; "
+                f"reveal with {why[0]['reveal_with']})" if why else "")})
             continue
         a = factor * mde[e]
         try:

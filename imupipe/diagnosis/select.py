@@ -117,7 +117,7 @@ class Signals:
         self.lin, self.model = lin, model
         P = model.unpack(lin.x_g)
         self.S_a = P["S_a"]
-        _, _, _, sig = model.residuals(lin.x_g, lin.x_l, signals=True)
+        self.r0, _, _, sig = model.residuals(lin.x_g, lin.x_l, signals=True)
         g = model.g
         self.f_rest = g * sig["gravity_rest"]  # (n, 3) model frame
         self.T_rest = model.dT + T_REF_C
@@ -194,7 +194,8 @@ class Signals:
 
     def gyro_motion_column(self, dy: np.ndarray) -> np.ndarray:
         """(N, k) d r / d theta of a term ``dy`` (N_g, 3, k) added to the motions' gyro samples: the
-        model's own residuals, differenced (central, a perturbation far below the noise)."""
+        model's own residuals, differenced (a perturbation of at most ``GYRO_STEP``, whose attitude
+        change is ~1e-7 rad: the response is linear far beyond the rounding of the residuals)."""
         model, lin = self.model, self.lin
         out = np.zeros((len(lin.r), dy.shape[2]))
         for j in range(dy.shape[2]):
@@ -204,12 +205,9 @@ class Signals:
                 continue
             h = GYRO_STEP / size
 
-            def r_at(step: float) -> np.ndarray:
-                m = copy.copy(model)
-                m.motions = dataclasses.replace(model.motions, y=model.motions.y + step * d)
-                return m.residuals(lin.x_g, lin.x_l)[0]
-
-            out[:, j] = -(r_at(h) - r_at(-h)) / (2 * h)  # the term in the prediction: r falls
+            m = copy.copy(model)
+            m.motions = dataclasses.replace(model.motions, y=model.motions.y + h * d)
+            out[:, j] = -(m.residuals(lin.x_g, lin.x_l)[0] - self.r0) / h  # the term in the prediction: r falls
         return out
 
 
