@@ -2,7 +2,8 @@
 
 Each catalogue effect that offers ``regressors`` becomes a candidate: its term's whitened
 columns ``C`` on the rows of the fitted per-sample model (``evaluate``): accelerometer
-rest means and motion samples, gyro rest means. Everything the nominal model can already
+rest means and motion samples, gyro rest means, and (for a gyro term) every row the motions'
+gyro samples reach through the integrated attitude. Everything the nominal model can already
 do is projected off (``Cp = (I - P) C`` with ``P`` the projector on the calibration's and
 the nuisances' Jacobian, through the fit's own block-tridiagonal system), so
 
@@ -42,9 +43,9 @@ import scipy.sparse as sp
 from scipy import stats
 from scipy.signal import savgol_filter
 
+from ..errors import SolverError
 from ..models import T_REF_C
 from ..rotations import skew
-from ..errors import SolverError
 from ..solvers.blocktri import Bordered
 from .linearised import Linearised
 from .residual_map import benjamini_hochberg
