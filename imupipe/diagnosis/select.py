@@ -53,6 +53,8 @@ from .residual_map import benjamini_hochberg
 VISIBLE_MIN = 0.05
 Q_FDR = 0.05
 FOLDS = 5
+STRETCHES_PER_FOLD = 4  # held-out stretches per fold, spread over the recording
+HELDOUT_Z = 1.645  # one-sided 5 %: a finding must predict held-out data significantly better
 WARMUP_TAUS_S = (30.0, 120.0, 600.0)
 NONCENTRALITY_80 = 7.85  # chi2_1 noncentrality for 80 % power at alpha = 0.05
 RIGID = 1e3  # weight on the walks' increments when the visible fraction is measured (q / 1e6)
@@ -411,9 +413,10 @@ def raw_units(lin: Linearised, r: np.ndarray) -> dict[str, np.ndarray]:
     return out
 
 
-def _fold_of_rows(lin: Linearised) -> np.ndarray:
-    """(N,) the fold of every data row (-1: prior rows, in every training set): ``FOLDS``
-    contiguous stretches of time, each rest and each motion whole in one of them."""
+def _fold_of_rows(lin: Linearised, stretches: int = FOLDS * STRETCHES_PER_FOLD) -> np.ndarray:
+    """(N,) the fold of every data row (-1: prior rows, in every training set): the recording
+    cut into ``stretches`` contiguous stretches of time (each rest and each motion whole in
+    one), dealt to the ``FOLDS`` folds in turn."""
     model = lin.model
     groups = np.full(len(lin.r), -1)
     for name in ("accel_rest", "gyro_rest"):
@@ -429,7 +432,7 @@ def _fold_of_rows(lin: Linearised) -> np.ndarray:
     order = np.flatnonzero(present)[np.argsort(t_group[present], kind="stable")]
     rank[order] = np.arange(len(order))
     fold = np.full(len(lin.r), -1)
-    fold[used] = rank[groups[used]] * FOLDS // max(len(order), 1)
+    fold[used] = (rank[groups[used]] * stretches // max(len(order), 1)) % FOLDS
     return fold
 
 
@@ -453,13 +456,17 @@ def _refit_predict(lin: Linearised, X: np.ndarray, k_base: int, train: np.ndarra
     return out[0], out[1]
 
 
-def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]) -> tuple[float, float]:
+def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]
+            ) -> tuple[float, float, float]:
     """Blocked cross-validated RMS (sensor units) of the finding's sensor rows without and with
-    its term (others already accepted are in both). The folds are ``FOLDS`` contiguous stretches
-    of time (whole rests and motions); for each, the calibration, every nuisance (the bias walks,
-    gravity directions, attitude paths) and the terms are refitted without it (one linearised
-    step) and its rows predicted: a bias walk fitted to the rows it is judged on would pass for
-    any slow term there, and bridges interleaved folds as well as the term does."""
+    its term (others already accepted are in both), and the paired z-score of the improvement
+    (``_sensor_rms``). Each fold holds ``STRETCHES_PER_FOLD`` contiguous stretches of time (whole
+    rests and motions) spread over the recording; for each fold the calibration, every nuisance
+    (bias walks, gravity directions, attitude paths) and the terms are refitted without it (one
+    linearised step) and its rows predicted. A bias walk fitted to the rows it is judged on would
+    pass for any slow term there, and it bridges single held-out rests as well as the term does;
+    one stretch per fold would leave some fold without the only motions that fix a calibration
+    parameter."""
     fold = _fold_of_rows(lin)
     base = [f.tested.candidate.columns for f in others]
     X = np.hstack(base + [finding.tested.candidate.columns])
@@ -479,17 +486,28 @@ def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Find
     return _sensor_rms(lin, finding, before, after)
 
 
-def _sensor_rms(lin: Linearised, finding: Finding, before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
+def _sensor_rms(lin: Linearised, finding: Finding, before: np.ndarray, after: np.ndarray
+                ) -> tuple[float, float, float]:
+    """Held-out RMS of the finding's sensor rows without and with the term, and the z-score of
+    the improvement: the squared error's decrease summed per rest and per motion, its mean over
+    them against its standard error (paired; positive: the term predicts better)."""
     sensor = finding.tested.candidate.sensor
     rows = np.any(finding.tested.candidate.columns != 0, axis=1)
-    e0, _ = raw_units(lin, np.where(rows, before, 0))[sensor]
+    e0, group = raw_units(lin, np.where(rows, before, 0))[sensor]
     e1, _ = raw_units(lin, np.where(rows, after, 0))[sensor]
     used = np.any(e0 != 0, axis=1)
-    rms = lambda e: float(np.sqrt(np.mean(e[used] ** 2))) if used.any() else float("nan")  # noqa: E731
-    return rms(e0), rms(e1)
+    if not used.any():
+        return float("nan"), float("nan"), float("nan")
+    rms = lambda e: float(np.sqrt(np.mean(e[used] ** 2)))  # noqa: E731
+    ids, where = np.unique(group[used], return_inverse=True)
+    d = np.bincount(where, (e0[used] ** 2 - e1[used] ** 2).sum(axis=1))
+    sd = float(np.std(d, ddof=1)) if len(d) > 1 else 0.0
+    z = float(np.mean(d) / (sd / np.sqrt(len(d)))) if sd > 0 else 0.0
+    return rms(e0), rms(e1), z
 
 
-def _heldout_projected(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]) -> tuple[float, float]:
+def _heldout_projected(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]
+                       ) -> tuple[float, float, float]:
     """The fallback: folds of the projected columns fitted to the nominal model's residual."""
     fold = _fold_of_rows(lin)
     base = np.hstack([f.tested.projected for f in others]) if others else np.zeros((len(rp), 0))
