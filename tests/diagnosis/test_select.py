@@ -13,7 +13,7 @@ from forward_synth import G, noise_free_imu, rests_from_truth, small_gimbal
 
 from imupipe.diagnosis.forward import JointModel, MotionAccel, Noise, Start
 from imupipe.diagnosis.linearised import fit
-from imupipe.diagnosis.select import candidates, examine, rigid_walks
+from imupipe.diagnosis.select import FOLDS, _fold_of_rows, candidates, examine, rigid_walks
 from imupipe.sim.api import known_effects, simulate_arrays
 
 SEED = 3
@@ -66,3 +66,20 @@ def test_a_terms_column_is_what_the_term_does_to_every_row(fitted, effect):
     assert np.linalg.norm(dr - predicted) < 0.02 * np.linalg.norm(dr)
     t = examine(lin, c, rigid_walks(lin))
     assert 0 <= t.visible <= 1 and t.mde > 0
+
+
+def test_held_out_folds_are_whole_rests_and_motions_in_stretches_spread_over_the_recording(fitted):
+    lin = fitted[-1]
+    fold = _fold_of_rows(lin)
+    data = fold >= 0
+    assert not data[lin.rows.of("walk_gyro") | lin.rows.of("walk_accel") | lin.rows.of("turn")].any()
+    for block in ("accel_rest", "accel_motion"):  # one fold per rest / per motion
+        rows = lin.rows.of(block)
+        unit = lin.rows.index[rows] if block == "accel_rest" else lin.model.accel.motion[lin.rows.index[rows]]
+        for i in np.unique(unit):
+            assert len(np.unique(fold[rows][unit == i])) == 1
+    rest = lin.rows.of("accel_rest")
+    assert np.array_equal(fold[rest], fold[lin.rows.of("gyro_rest")])  # a rest's two triads together
+    order = np.argsort(lin.rows.t[rest], kind="stable")
+    runs = 1 + np.count_nonzero(np.diff(fold[rest][order]))
+    assert sorted(set(fold[data])) == list(range(FOLDS)) and runs >= FOLDS * 2  # folds recur in time
