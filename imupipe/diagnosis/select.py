@@ -414,10 +414,10 @@ def raw_units(lin: Linearised, r: np.ndarray) -> dict[str, np.ndarray]:
     return out
 
 
-def _fold_of_rows(lin: Linearised, stretches: int = FOLDS * STRETCHES_PER_FOLD) -> np.ndarray:
+def _fold_of_rows(lin: Linearised, stretches: int | None = FOLDS * STRETCHES_PER_FOLD) -> np.ndarray:
     """(N,) the fold of every data row (-1: prior rows, in every training set): the recording
     cut into ``stretches`` contiguous stretches of time (each rest and each motion whole in
-    one), dealt to the ``FOLDS`` folds in turn."""
+    one), dealt to the ``FOLDS`` folds in turn; ``None``: single rests and motions dealt out."""
     model = lin.model
     groups = np.full(len(lin.r), -1)
     for name in ("accel_rest", "gyro_rest"):
@@ -427,6 +427,8 @@ def _fold_of_rows(lin: Linearised, stretches: int = FOLDS * STRETCHES_PER_FOLD) 
     if len(rm):
         groups[rm] = (model.n + model.accel.motion)[:, None]
     used = groups >= 0
+    if stretches is None:
+        return np.where(used, (groups * 7919) % FOLDS, -1)
     t_group = np.bincount(groups[used], lin.rows.t[used]) / np.maximum(np.bincount(groups[used]), 1)
     present = np.bincount(groups[used]) > 0
     rank = np.full(len(t_group), -1)
@@ -438,23 +440,29 @@ def _fold_of_rows(lin: Linearised, stretches: int = FOLDS * STRETCHES_PER_FOLD) 
 
 
 def _refit_predict(lin: Linearised, X: np.ndarray, k_base: int, train: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The residual on every row after a Gauss-Newton refit of the globals, every nuisance and the
-    term columns ``X`` (N, k) to the ``train`` rows (the priors always count): without the last
-    ``k - k_base`` columns and with them. One factorisation of the nuisances' system serves both."""
+    """The residual on every row after a Gauss-Newton refit of every nuisance and the term columns
+    ``X`` (N, k) to the ``train`` rows (the priors always count), without the last ``k - k_base``
+    columns and with them; one factorisation of the nuisances' system serves both. The
+    calibration stays at the whole recording's fit (``X`` carries its response to each term):
+    refitted without a stretch it loses the only motions that fix some of its parameters."""
     w = train.astype(float)
-    Jg = np.hstack([lin.J_g, X]) * w[:, None]
+    Jg = X * w[:, None]
     Jl = (sp.diags(w) @ lin.J_l).tocsr()
     system = Bordered(Jg, Jl, lin.model.stages.offsets)
     rw = lin.r * w
     g_g, g_l = -(Jg.T @ rw), -np.asarray(Jl.T @ rw)
     y = system.blocks.solve(g_l)
     out = []
-    for P in (lin.J_g.shape[1] + k_base, Jg.shape[1]):
-        S = system.S[:P, :P]
-        x_g = np.linalg.solve(S, g_g[:P] - system.A_lg[:, :P].T @ y)
+    for P in (k_base, X.shape[1]):
+        x_g = np.linalg.solve(system.S[:P, :P], g_g[:P] - system.A_lg[:, :P].T @ y) if P else np.zeros(0)
         x_l = y - system.X[:, :P] @ x_g
-        out.append(lin.r + np.hstack([lin.J_g, X])[:, :P] @ x_g + lin.J_l @ x_l)
+        out.append(lin.r + X[:, :P] @ x_g + lin.J_l @ x_l)
     return out[0], out[1]
+
+
+def _with_calibration(lin: Linearised, C: np.ndarray) -> np.ndarray:
+    """A term's columns with the calibration's first-order response to it (``C - J_g z_g``)."""
+    return C - lin.J_g @ project(lin, C)[1]
 
 
 def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]
@@ -462,16 +470,18 @@ def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Find
     """Blocked cross-validated RMS (sensor units) of the finding's sensor rows without and with
     its term (others already accepted are in both), and the paired z-score of the improvement
     (``_sensor_rms``). Each fold holds ``STRETCHES_PER_FOLD`` contiguous stretches of time (whole
-    rests and motions) spread over the recording; for each fold the calibration, every nuisance
-    (bias walks, gravity directions, attitude paths) and the terms are refitted without it (one
-    linearised step) and its rows predicted. A bias walk fitted to the rows it is judged on would
-    pass for any slow term there, and it bridges single held-out rests as well as the term does;
-    one stretch per fold would leave some fold without the only motions that fix a calibration
-    parameter."""
+    rests and motions) spread over the recording; for each fold every nuisance (bias walks,
+    gravity directions, attitude paths) and the terms are refitted without it (one linearised
+    step, the calibration moving with the terms as on the whole recording) and its rows
+    predicted. A bias walk fitted to the rows it is judged on would pass for any slow term
+    there, and it bridges single held-out rests as well as the term does."""
+    if finding.tested.candidate.regime == "motion":  # nothing slow copies it: single motions out
+        return _heldout_projected(lin, rp, finding, others)
     fold = _fold_of_rows(lin)
-    base = [f.tested.candidate.columns for f in others]
-    X = np.hstack(base + [finding.tested.candidate.columns])
-    k_base = X.shape[1] - finding.tested.candidate.columns.shape[1]
+    base = [_with_calibration(lin, f.tested.candidate.columns) for f in others]
+    own = _with_calibration(lin, finding.tested.candidate.columns)
+    X = np.hstack(base + [own])
+    k_base = X.shape[1] - own.shape[1]
     before, after = np.zeros_like(rp), np.zeros_like(rp)
     try:
         for k in range(FOLDS):
@@ -509,8 +519,10 @@ def _sensor_rms(lin: Linearised, finding: Finding, before: np.ndarray, after: np
 
 def _heldout_projected(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]
                        ) -> tuple[float, float, float]:
-    """The fallback: folds of the projected columns fitted to the nominal model's residual."""
-    fold = _fold_of_rows(lin)
+    """Single rests and motions dealt to the folds, the projected columns fitted to the nominal
+    model's residual: a motion term (only the motion's own attitude path could copy it, and a
+    held-out motion is whole), and the fallback."""
+    fold = _fold_of_rows(lin, None)
     base = np.hstack([f.tested.projected for f in others]) if others else np.zeros((len(rp), 0))
     full = np.hstack([base, finding.tested.projected])
     before, after = np.zeros_like(rp), np.zeros_like(rp)
