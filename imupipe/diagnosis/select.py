@@ -21,8 +21,8 @@ the nuisances' Jacobian, through the fit's own block-tridiagonal system), so
   accepted (its term refitted jointly with the others by the linearised Gauss-Newton step),
   then a backward check drops any accepted term that lost significance;
 - **held-out proof**: by blocked cross-validation (for a static or warm-up term, 5 folds of 4
-  contiguous stretches of time each, whole rests and whole motions) every nuisance and the
-  term are refitted without a fold (one linearised step) and its residual RMS in the sensor's
+  contiguous stretches of time each, whole rests and whole motions) the calibration, every
+  nuisance and the term are refitted without a fold (one linearised step) and its residual RMS in the sensor's
   units is compared without and with the term, with the paired z-score of the improvement.
   Refitting the nuisances matters: a bias walk already fitted to the rows it is judged on
   copies any slow term there. A motion term is held out by single rests and motions.
@@ -440,29 +440,22 @@ def _fold_of_rows(lin: Linearised, stretches: int | None = FOLDS * STRETCHES_PER
 
 
 def _refit_predict(lin: Linearised, X: np.ndarray, k_base: int, train: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The residual on every row after a Gauss-Newton refit of every nuisance and the term columns
-    ``X`` (N, k) to the ``train`` rows (the priors always count), without the last ``k - k_base``
-    columns and with them; one factorisation of the nuisances' system serves both. The
-    calibration stays at the whole recording's fit (``X`` carries its response to each term):
-    refitted without a stretch it loses the only motions that fix some of its parameters."""
+    """The residual on every row after a Gauss-Newton refit of the globals, every nuisance and the
+    term columns ``X`` (N, k) to the ``train`` rows (the priors always count): without the last
+    ``k - k_base`` columns and with them. One factorisation of the nuisances' system serves both."""
     w = train.astype(float)
-    Jg = X * w[:, None]
+    Jg = np.hstack([lin.J_g, X]) * w[:, None]
     Jl = (sp.diags(w) @ lin.J_l).tocsr()
     system = Bordered(Jg, Jl, lin.model.stages.offsets)
     rw = lin.r * w
     g_g, g_l = -(Jg.T @ rw), -np.asarray(Jl.T @ rw)
     y = system.blocks.solve(g_l)
     out = []
-    for P in (k_base, X.shape[1]):
-        x_g = np.linalg.solve(system.S[:P, :P], g_g[:P] - system.A_lg[:, :P].T @ y) if P else np.zeros(0)
+    for P in (lin.J_g.shape[1] + k_base, Jg.shape[1]):
+        x_g = np.linalg.solve(system.S[:P, :P], g_g[:P] - system.A_lg[:, :P].T @ y)
         x_l = y - system.X[:, :P] @ x_g
-        out.append(lin.r + X[:, :P] @ x_g + lin.J_l @ x_l)
+        out.append(lin.r + np.hstack([lin.J_g, X])[:, :P] @ x_g + lin.J_l @ x_l)
     return out[0], out[1]
-
-
-def _with_calibration(lin: Linearised, C: np.ndarray) -> np.ndarray:
-    """A term's columns with the calibration's first-order response to it (``C - J_g z_g``)."""
-    return C - lin.J_g @ project(lin, C)[1]
 
 
 def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]
@@ -470,18 +463,18 @@ def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Find
     """Blocked cross-validated RMS (sensor units) of the finding's sensor rows without and with
     its term (others already accepted are in both), and the paired z-score of the improvement
     (``_sensor_rms``). Each fold holds ``STRETCHES_PER_FOLD`` contiguous stretches of time (whole
-    rests and motions) spread over the recording; for each fold every nuisance (bias walks,
-    gravity directions, attitude paths) and the terms are refitted without it (one linearised
-    step, the calibration moving with the terms as on the whole recording) and its rows
-    predicted. A bias walk fitted to the rows it is judged on would pass for any slow term
-    there, and it bridges single held-out rests as well as the term does."""
-    if finding.tested.candidate.regime == "motion":  # nothing slow copies it: single motions out
+    rests and motions) spread over the recording; for each fold the calibration, every nuisance
+    (bias walks, gravity directions, attitude paths) and the terms are refitted without it (one
+    linearised step) and its rows predicted. A bias walk fitted to the rows it is judged on would
+    pass for any slow term there, and it bridges single held-out rests as well as the term does;
+    one stretch per fold would leave some fold without the only motions that fix a calibration
+    parameter. A motion term is held out by single rests and motions (``_heldout_projected``):
+    only its motion's own attitude path could copy it, and a held-out motion is whole."""
+    if finding.tested.candidate.regime == "motion":
         return _heldout_projected(lin, rp, finding, others)
     fold = _fold_of_rows(lin)
-    base = [_with_calibration(lin, f.tested.candidate.columns) for f in others]
-    own = _with_calibration(lin, finding.tested.candidate.columns)
-    X = np.hstack(base + [own])
-    k_base = X.shape[1] - own.shape[1]
+    X = np.hstack([f.tested.candidate.columns for f in others] + [finding.tested.candidate.columns])
+    k_base = X.shape[1] - finding.tested.candidate.columns.shape[1]
     before, after = np.zeros_like(rp), np.zeros_like(rp)
     try:
         for k in range(FOLDS):
