@@ -22,10 +22,11 @@ the nuisances' Jacobian, through the fit's own block-tridiagonal system), so
   then a backward check drops any accepted term that lost significance;
 - **held-out proof**: by blocked cross-validation (for a static or warm-up term, 5 folds of 4
   contiguous stretches of time each, whole rests and whole motions) the calibration, every
-  nuisance and the term are refitted without a fold (one linearised step) and its residual RMS in the sensor's
-  units is compared without and with the term, with the paired z-score of the improvement.
-  Refitting the nuisances matters: a bias walk already fitted to the rows it is judged on
-  copies any slow term there. A motion term is held out by single rests and motions.
+  nuisance and the term are refitted without a fold (one linearised step) and its residual
+  RMS in the sensor's units is compared without and with the term, with the paired z-score
+  of the improvement. Refitting the nuisances matters: a bias walk already fitted to the rows
+  it is judged on copies any slow term there. A motion term is held out by single rests and
+  motions.
 
 The p-values are asymptotic (chi-square); ``bench/diagnosis.py`` measures how often nulls
 produce a finding. Effects whose terms act through the attitude integration (gyro scale
