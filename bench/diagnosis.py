@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from imupipe.diagnosis.select import EARTH_RATE, NONCENTRALITY_80
+from imupipe.diagnosis.select import EARTH_RATE, NONCENTRALITY_80, VISIBLE_MIN
 from imupipe.pipeline.api import run_sessions
 from imupipe.sim.api import simulate
 
@@ -98,14 +98,17 @@ def one_seed(args: tuple[str, int, list[str], float, str]) -> dict:
     mde = {}
     for t in null["tested"]:
         e = t["effect"]
-        if e in effects and t["visible_fraction"] >= 0.05 and t["sensor"] == SENSOR.get(e, "accel"):
+        if e in effects and t["visible_fraction"] >= VISIBLE_MIN and t["sensor"] == SENSOR.get(e, "accel"):
             d = direction(e)
             lam = d @ np.asarray(t["information"]) @ d
             mde[e] = min(mde.get(e, np.inf), float(np.sqrt(NONCENTRALITY_80 / lam)) if lam > 0 else np.inf)
     runs = []
     for e in effects:
         if e not in mde or not np.isfinite(mde[e]):
-            runs.append({"effect": e, "skipped": "not visible on this protocol"})
+            why = [n for n in null["not_identifiable"] if n["effect"] == e and n["sensor"] == SENSOR.get(e, "accel")]
+            runs.append({"effect": e, "skipped": "not identifiable on this protocol" + (
+                f" (visible {why[0]['visible_fraction']:.1%}, absorbed by {', '.join(why[0]['biases'])}; "
+                f"reveal with {why[0]['reveal_with']})" if why else "")})
             continue
         a = factor * mde[e]
         try:

@@ -4,7 +4,8 @@
 significant ones with their fitted parameters, held-out RMS before and after and an
 explanation; a cell of the residual map that stays flagged and that no accepted term's
 sensor and regime covers becomes an ``unknown`` finding that says what it correlates with.
-A significant term whose held-out RMS does not improve is not a finding (``not_confirmed``).
+A significant term whose held-out RMS does not improve significantly (paired z below
+``HELDOUT_Z``) is not a finding (``not_confirmed``).
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ import numpy as np
 from .evaluate import Evaluation
 from .library import structure_cells
 from .residual_map import benjamini_hochberg, windows
-from .select import BLOCK_S, BOOT_DRAWS, EARTH_RATE, REVEAL, UNTESTED, VISIBLE_MIN, Q_FDR, Finding, candidates, heldout, select, examine
+from .select import (BLOCK_S, BOOT_DRAWS, EARTH_RATE, HELDOUT_Z, Q_FDR, REVEAL, UNTESTED, VISIBLE_MIN, Finding,
+                     candidates, examine, heldout, rigid_walks, select)
 
 AXES = ("x", "y", "z")
 EARTH_IMPLAUSIBLE = 1.2  # a vertical rate above this many Earth rates is not Earth's
@@ -22,19 +24,21 @@ EARTH_IMPLAUSIBLE = 1.2  # a vertical rate above this many Earth rates is not Ea
 
 def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str = "", q: float = Q_FDR) -> dict:
     lin = ev.lin
-    tested = [examine(lin, c) for c in candidates(lin, ev.frame, effects)]
+    rigid = rigid_walks(lin)
+    tested = [examine(lin, c, rigid) for c in candidates(lin, ev.frame, effects)]
     rp, accepted = select(lin, tested, q)
     findings, not_confirmed, kept = [], [], []
     for i, f in enumerate(accepted):
         doc = _finding(lin, rp, f, accepted[:i] + accepted[i + 1:], effects)
-        if doc["heldout_rms_after"] < doc["heldout_rms_before"]:
+        if doc["heldout_rms_after"] < doc["heldout_rms_before"] and doc["heldout_z"] >= HELDOUT_Z:
             findings.append(doc)
             kept.append(f)
-        else:  # significant on the data it was fitted to, no better on data it was not: not stood behind
+        else:  # significant on the data it was fitted to, not better on data it was not: not stood behind
             not_confirmed.append({"effect": doc["effect"], "sensor": doc["sensor"], "regime": doc["regime"],
                                   "parameters": doc["parameters"], "significance": doc["significance"],
-                                  "reason": f"held-out RMS did not improve ({doc['heldout_rms_before']:.4g} -> "
-                                            f"{doc['heldout_rms_after']:.4g})"})
+                                  "reason": f"held-out RMS did not improve significantly ({doc['heldout_rms_before']:.4g} "
+                                            f"-> {doc['heldout_rms_after']:.4g}, z = {doc['heldout_z']:.2f} "
+                                            f"< {HELDOUT_Z})"})
     # structure the accepted terms leave: the generic library tested conditionally on them
     given = np.hstack([f.tested.projected for f in kept]) if kept else None
     left = structure_cells(lin, given, rp)
@@ -90,7 +94,7 @@ def _finding(lin, rp: np.ndarray, f: Finding, others: list[Finding], effects: di
     if effect == "earth_rotation" and abs(f.theta[0]) > EARTH_IMPLAUSIBLE * EARTH_RATE:
         # a vertical rate Earth cannot make: the isotropic g-sensitivity it is indistinguishable from at rest
         effect, params = "gyro_g_sensitivity", {"G": (float(f.theta[0]) / lin.model.g * np.eye(3)).tolist()}
-    before, after = heldout(lin, rp, f, others)
+    before, after, z = heldout(lin, rp, f, others)
     contrib = (f.tested.projected @ f.theta) ** 2
     rows = np.any(c.columns != 0, axis=1)
     where = windows(lin.rows.t[rows], contrib[rows])
@@ -104,11 +108,12 @@ def _finding(lin, rp: np.ndarray, f: Finding, others: list[Finding], effects: di
         "parameters": params,
         "significance": {"statistic": f.statistic, "p_value": f.p_value, "p_value_asymptotic": f.p_asymptotic,
                          "delta_bic": f.delta_bic, "bootstrap_draws": BOOT_DRAWS},
-        "heldout_rms_before": before, "heldout_rms_after": after,
+        "heldout_rms_before": before, "heldout_rms_after": after, "heldout_z": z,
         "visible_fraction": f.tested.visible,
         "explanation": (f"The {c.sensor} residuals in the {c.regime} rows carry a term the nominal model "
                         f"cannot make (score chi2 {f.statistic:.1f} on {f.tested.projected.shape[1]} dof, "
-                        f"p = {f.p_value:.2g}); modelled as {words} Held-out RMS {before:.4g} -> {after:.4g}."),
+                        f"p = {f.p_value:.2g}); modelled as {words} Held-out RMS {before:.4g} -> {after:.4g} "
+                        f"(improvement z = {z:.1f})."),
     }
 
 
@@ -118,7 +123,7 @@ def _unknown(cell: dict) -> dict:
         "effect": "unknown", "sensor": cell["sensor"], "axes": cell["axes"], "regime": cell["regime"],
         "windows": cell.get("windows", []), "parameters": {},
         "significance": {"statistic": cell["chi2"], "p_value": cell["p_value"], "delta_bic": None},
-        "heldout_rms_before": None, "heldout_rms_after": None,
+        "heldout_rms_before": None, "heldout_rms_after": None, "heldout_z": None,
         "explanation": (f"The {cell['sensor']} {'/'.join(cell['axes'])} residuals in the {cell['regime']} rows "
                         f"with {var} in [{lo}, {hi}] have chi2/dof {cell['chi2_per_dof']:.2f} and no catalogue "
                         "term explains them: look at those windows (an unmodelled disturbance, a knock, a "

@@ -2,13 +2,17 @@
 
 Each catalogue effect that offers ``regressors`` becomes a candidate: its term's whitened
 columns ``C`` on the rows of the fitted per-sample model (``evaluate``): accelerometer
-rest means and motion samples, gyro rest means. Everything the nominal model can already
+rest means and motion samples, gyro rest means, and (for a gyro term) every row the motions'
+gyro samples reach through the integrated attitude. Everything the nominal model can already
 do is projected off (``Cp = (I - P) C`` with ``P`` the projector on the calibration's and
 the nuisances' Jacobian, through the fit's own block-tridiagonal system), so
 
-- the **visible fraction** ``|Cp|^2 / |C|^2`` (smallest over the term's directions) says
+- the **visible fraction** ``|Cv| / |C|`` (the memo's ``|P_perp z| / |z|``, smallest over the
+  term's directions; ``Cv`` projected with the bias walks held still, ``rigid_walks``) says
   whether this recording can tell the effect from the nominal parameters at all; below
-  ``VISIBLE_MIN`` it goes to ``not_identifiable`` with the parameters it would bias;
+  ``VISIBLE_MIN`` it goes to ``not_identifiable`` with the parameters it would bias. What the
+  walks can mimic on top is a loss of power, counted in the information and the minimum
+  detectable size (from ``Cp``, the walks free under their prior), not a concealment;
 - the **score statistic** ``r' Cp (Cp' Cp)^-1 Cp' r`` is chi-square with the term's
   dimension under the null (scaled by the affected rows' chi2/dof when that exceeds 1,
   so an under-modelled noise floor does not pass for physics);
@@ -16,9 +20,13 @@ the nuisances' Jacobian, through the fit's own block-tridiagonal system), so
   those accepted, Benjamini-Hochberg at ``q`` over them, the strongest significant one is
   accepted (its term refitted jointly with the others by the linearised Gauss-Newton step),
   then a backward check drops any accepted term that lost significance;
-- **held-out proof**: by blocked cross-validation (5 folds of whole rests and whole
-  motions) the term is fitted without a block and the block's residual RMS in the sensor's
-  units is compared without and with it.
+- **held-out proof**: by blocked cross-validation (for a static or warm-up term, 5 folds of 4
+  contiguous stretches of time each, whole rests and whole motions) the calibration, every
+  nuisance and the term are refitted without a fold (one linearised step) and its residual
+  RMS in the sensor's units is compared without and with the term, with the paired z-score
+  of the improvement. Refitting the nuisances matters: a bias walk already fitted to the rows
+  it is judged on copies any slow term there. A motion term is held out by single rests and
+  motions.
 
 A p-value is the larger of the asymptotic (chi-square) one and a wild bootstrap's over 5-s
 time blocks (``wild_p``: the recording's own noise, whatever its colour, without a noise
@@ -29,24 +37,34 @@ tested here yet: ``untested`` lists them with the reason.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
 from scipy import stats
 from scipy.signal import savgol_filter
 
 from ..effects.earth_rotation import EARTH_RATE
+from ..errors import SolverError
+from ..models import T_REF_C
 from ..rotations import skew
+from ..solvers.blocktri import Bordered
 from .linearised import Linearised
 from .residual_map import benjamini_hochberg
 
 VISIBLE_MIN = 0.05
 Q_FDR = 0.05
 FOLDS = 5
+STRETCHES_PER_FOLD = 4  # held-out stretches per fold, spread over the recording
+HELDOUT_Z = 1.645  # one-sided 5 %: a finding must predict held-out data significantly better
 WARMUP_TAUS_S = (30.0, 120.0, 600.0)
 NONCENTRALITY_80 = 7.85  # chi2_1 noncentrality for 80 % power at alpha = 0.05
 BLOCK_S = 5.0  # time blocks of the wild bootstrap (rows within a block keep their signs together)
 BOOT_DRAWS = 999
+RIGID = 1e3  # weight on the walks' increments when the visible fraction is measured (q / 1e6)
+GYRO_STEP = 1e-7  # rad/s: the largest perturbation of a gyro sample when differencing a term's column
 UNTESTED = {
     "gyro_scale_asymmetry": "acts through the attitude integration inside motions (not in the score model yet)",
     "gyro_saturation": "acts through the attitude integration inside motions (not in the score model yet)",
@@ -99,23 +117,49 @@ def _rows3(lin: Linearised, block: str) -> np.ndarray:
 
 
 class Signals:
-    """What the candidates' regressors need, read once off the fitted model."""
+    """What the candidates' regressors need, read once off the fitted model: at the rests (their
+    means), at the accelerometer samples inside the motions (``*_motion``) and at the gyro samples
+    the motions' attitude is integrated from (``*_gyro_motion``). A term acts on every reading,
+    so its column covers all three: a bias-like term left out of the motions is one the bias walk
+    can copy at the rests for free (the walk moves the motions' readings too), and its score
+    collapses."""
 
     def __init__(self, lin: Linearised):
         model = lin.model
         self.lin, self.model = lin, model
         P = model.unpack(lin.x_g)
         self.S_a = P["S_a"]
-        _, _, _, sig = model.residuals(lin.x_g, lin.x_l, signals=True, jacobian=False)
+        self.r0, _, _, sig = model.residuals(lin.x_g, lin.x_l, signals=True, jacobian=False)
         g = model.g
         self.f_rest = g * sig["gravity_rest"]  # (n, 3) model frame
-        self.T_rest = model.dT + 25.0
+        self.T_rest = model.dT + T_REF_C
         self.rows_a, self.rows_g = _rows3(lin, "accel_rest"), _rows3(lin, "gyro_rest")
         self.W_a, self.W_g = model.W_a, model.W_g
-        self.t_on_rest = model.mid - model.mid[0] + 0.5 * model.length[0]
-        acc = model.accel
+        t_first = model.mid[0] - 0.5 * model.length[0]
+        self.t_on_rest = model.mid - t_first
+        acc, ms = model.accel, model.motions
         self.rows_m = _rows3(lin, "accel_motion")
         self.has_motion = len(acc.t) > 0
+        self.has_gyro_motion = len(ms.t) > 0
+        self.T_motion = model.dT_acc + T_REF_C
+        self.t_on_motion = acc.t - t_first
+        self.T_gyro_motion = model.dT_gyro + T_REF_C
+        self.t_on_gyro_motion = ms.t - t_first
+        u = sig["gravity_rest"]
+        u_g = np.zeros((len(ms.t), 3))  # gravity at the gyro's samples: the accel samples' path, or
+        for j in range(ms.count):  # the rests' directions across a motion without samples
+            sel = ms.motion == j
+            if not sel.any():
+                continue
+            sa = acc.motion == j if self.has_motion else np.zeros(0, bool)
+            if sa.sum() >= 2:
+                u_g[sel] = np.column_stack([np.interp(ms.t[sel], acc.t[sa], sig["gravity_motion"][sa, i])
+                                            for i in range(3)])
+            else:
+                span = max(ms.end[j] - ms.origin[j], 1e-12)
+                lam = np.clip((ms.t[sel] - ms.origin[j]) / span, 0, 1)[:, None]
+                u_g[sel] = (1 - lam) * u[model.p[j]] + lam * u[model.qr[j]]
+        self.f_gyro_motion = g * u_g / np.maximum(np.linalg.norm(u_g, axis=1, keepdims=True), 1e-12)
         if self.has_motion:
             self.f_motion = g * sig["gravity_motion"]
             omega, _ = model._rates(P, lin.x_l, derivatives=False)
@@ -142,6 +186,41 @@ class Signals:
         spec = "ij,njk->nik" if W.ndim == 2 else "nij,njk->nik"
         C[rows.ravel()] = -np.einsum(spec, W, dy).reshape(-1, dy.shape[2])
         return C
+
+    def accel_term(self, regressors) -> np.ndarray:
+        """(N, k) the column of an accelerometer term on the rest means and the motions' samples;
+        ``regressors(at)`` gives d y / d theta (n, 3, k) with ``at`` "rest" or "motion"."""
+        C = self.column(self.rows_a, self.W_a, regressors("rest"))
+        if self.has_motion:
+            C = C + self.column(self.rows_m, self.model.W_sample, regressors("motion"))
+        return C
+
+    def gyro_term(self, regressors) -> np.ndarray:
+        """(N, k) the column of a gyro term on the rest means and, through the attitude the motions'
+        gyro samples integrate to, on the motions' rows (``regressors(at)``, at "rest" or
+        "gyro_motion")."""
+        C = self.column(self.rows_g, self.W_g, regressors("rest"))
+        if self.has_gyro_motion:
+            C = C + self.gyro_motion_column(regressors("gyro_motion"))
+        return C
+
+    def gyro_motion_column(self, dy: np.ndarray) -> np.ndarray:
+        """(N, k) d r / d theta of a term ``dy`` (N_g, 3, k) added to the motions' gyro samples: the
+        model's own residuals, differenced (a perturbation of at most ``GYRO_STEP``, whose attitude
+        change is ~1e-7 rad: the response is linear far beyond the rounding of the residuals)."""
+        model, lin = self.model, self.lin
+        out = np.zeros((len(lin.r), dy.shape[2]))
+        for j in range(dy.shape[2]):
+            d = dy[:, :, j]
+            size = float(np.abs(d).max()) if d.size else 0.0
+            if size == 0:
+                continue
+            h = GYRO_STEP / size
+
+            m = copy.copy(model)
+            m.motions = dataclasses.replace(model.motions, y=model.motions.y + h * d)
+            out[:, j] = -(m.residuals(lin.x_g, lin.x_l)[0] - self.r0) / h  # the term in the prediction: r falls
+        return out
 
 
 def _derivative(y: np.ndarray, t: np.ndarray, span_s: float = 0.1) -> np.ndarray:
@@ -171,28 +250,31 @@ def candidates(lin: Linearised, frame: np.ndarray, registry) -> list[Candidate]:
         C = s.column(s.rows_m, s.model.W_sample, np.einsum("ij,njk->nik", s.S_a, R))
         out.append(Candidate("accel_gyro_time_offset", "accel", "motion", ["dt_s"], C,
                              lambda th: {"dt_s": float(th[0])}))
+    # the terms below act on every reading: rest means, the motions' accelerometer samples and
+    # (gyro) the samples the motions' attitude is integrated from
+    x_at = {"rest": s.f_rest @ s.S_a.T, "motion": s.f_motion @ s.S_a.T if s.has_motion else np.zeros((0, 3))}
+    T_at = {"rest": s.T_rest, "motion": s.T_motion, "gyro_motion": s.T_gyro_motion}
+    t_on_at = {"rest": s.t_on_rest, "motion": s.t_on_motion, "gyro_motion": s.t_on_gyro_motion}
+    f_at = {"rest": s.f_rest, "gyro_motion": s.f_gyro_motion}
+
+    def term(sensor: str, regressors) -> np.ndarray:
+        return s.accel_term(regressors) if sensor == "accel" else s.gyro_term(regressors)
+
     if "accel_nonlinearity" in eff:
-        x_r = s.f_rest @ s.S_a.T
-        C = s.column(s.rows_a, s.W_a, eff["accel_nonlinearity"].regressors({"x": x_r}))
-        if s.has_motion:
-            C = C + s.column(s.rows_m, s.model.W_sample,
-                             eff["accel_nonlinearity"].regressors({"x": s.f_motion @ s.S_a.T}))
+        C = s.accel_term(lambda at: eff["accel_nonlinearity"].regressors({"x": x_at[at]}))
         out.append(Candidate("accel_nonlinearity", "accel", "all", ["k2_x", "k2_y", "k2_z"], C,
                              lambda th: {"k2": list(th)}))
     if "accel_scale_temperature" in eff:
-        x_r = s.f_rest @ s.S_a.T
-        C = s.column(s.rows_a, s.W_a, eff["accel_scale_temperature"].regressors({"x": x_r, "T": s.T_rest}))
+        C = s.accel_term(lambda at: eff["accel_scale_temperature"].regressors({"x": x_at[at], "T": T_at[at]}))
         out.append(Candidate("accel_scale_temperature", "accel", "static", ["ppm_x", "ppm_y", "ppm_z"], C,
                              lambda th: {"ppm_per_C": list(th)}))
     if "bias_temperature_nonlinear" in eff:
-        R = eff["bias_temperature_nonlinear"].regressors({"T": s.T_rest})
-        for sensor, rows, W in (("accel", s.rows_a, s.W_a), ("gyro", s.rows_g, s.W_g)):
-            out.append(Candidate("bias_temperature_nonlinear", sensor, "static", ["k2_x", "k2_y", "k2_z"],
-                                 s.column(rows, W, R),
+        for sensor in ("accel", "gyro"):
+            C = term(sensor, lambda at: eff["bias_temperature_nonlinear"].regressors({"T": T_at[at]}))
+            out.append(Candidate("bias_temperature_nonlinear", sensor, "static", ["k2_x", "k2_y", "k2_z"], C,
                                  lambda th, sensor=sensor: {"k2_per_C2": list(th), "sensor": sensor}))
     if "gyro_g_sensitivity" in eff:
-        R = eff["gyro_g_sensitivity"].regressors({"f": s.f_rest})
-        C = s.column(s.rows_g, s.W_g, R)
+        C = s.gyro_term(lambda at: eff["gyro_g_sensitivity"].regressors({"f": f_at[at]}))
         out.append(Candidate("gyro_g_sensitivity", "gyro", "static", [f"G{i}{j}" for i in range(3) for j in range(3)],
                              C, lambda th: {"G": (th.reshape(3, 3) @ Q).tolist()}))
     if "earth_rotation" in eff:
@@ -201,17 +283,18 @@ def candidates(lin: Linearised, frame: np.ndarray, registry) -> list[Candidate]:
         # turns with the heading, which no rest fixes (left to the bias walk). One column, against
         # the nine of gyro_g_sensitivity: the selection names whichever explains the rests
         # with fewer parameters.
-        up = s.f_rest / np.linalg.norm(s.f_rest, axis=1, keepdims=True)
-        R = eff["earth_rotation"].regressors({"north": np.zeros_like(up), "up": up})[:, :, 1:]
-        out.append(Candidate("earth_rotation", "gyro", "static", ["Omega_sin_lat"], s.column(s.rows_g, s.W_g, R),
+        def vertical(at: str) -> np.ndarray:
+            up = f_at[at] / np.maximum(np.linalg.norm(f_at[at], axis=1, keepdims=True), 1e-12)
+            return eff["earth_rotation"].regressors({"north": np.zeros_like(up), "up": up})[:, :, 1:]
+
+        out.append(Candidate("earth_rotation", "gyro", "static", ["Omega_sin_lat"], s.gyro_term(vertical),
                              _latitude))
     if "warmup_transient" in eff:
-        for sensor, rows, W in (("accel", s.rows_a, s.W_a), ("gyro", s.rows_g, s.W_g)):
+        for sensor in ("accel", "gyro"):
             for tau in WARMUP_TAUS_S:
-                R = eff["warmup_transient"].regressors({"t_on": s.t_on_rest}, {"amp": [0, 0, 0], "tau_s": tau,
-                                                                                "sensor": sensor})
-                out.append(Candidate("warmup_transient", sensor, "warmup", ["amp_x", "amp_y", "amp_z"],
-                                     s.column(rows, W, R),
+                p = {"amp": [0, 0, 0], "tau_s": tau, "sensor": sensor}
+                C = term(sensor, lambda at, p=p: eff["warmup_transient"].regressors({"t_on": t_on_at[at]}, p))
+                out.append(Candidate("warmup_transient", sensor, "warmup", ["amp_x", "amp_y", "amp_z"], C,
                                      lambda th, sensor=sensor, tau=tau: {"amp": list(th), "tau_s": tau,
                                                                          "sensor": sensor},
                                      extra_dof=len(WARMUP_TAUS_S), fixed={"tau_s": tau}))
@@ -224,17 +307,38 @@ def _latitude(th: np.ndarray) -> dict:
     return {"latitude_deg": float(np.degrees(np.arcsin(np.clip(float(th[0]) / EARTH_RATE, -1, 1))))}
 
 
-def project(lin: Linearised, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(I - P) C`` and the nominal globals' shift per unit of each column, ``z_g`` (P_g, k)."""
-    return lin.project(C)
+def project(lin: Linearised, C: np.ndarray, system: Bordered | None = None,
+            J_l: sp.csr_matrix | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(I - P) C`` and the nominal globals' shift per unit of each column, ``z_g`` (P_g, k);
+    ``system``/``J_l``: another normal system of the same Jacobian (``rigid_walks``)."""
+    if system is None and J_l is None:
+        return lin.project(C)
+    system = lin.system if system is None else system
+    J_l = lin.J_l if J_l is None else J_l
+    z_g, z_l = system.solve(lin.J_g.T @ C, J_l.T @ C)
+    return C - lin.J_g @ z_g - J_l @ z_l, z_g
 
 
-def examine(lin: Linearised, c: Candidate) -> Tested:
+def rigid_walks(lin: Linearised) -> tuple[Bordered, sp.csr_matrix]:
+    """The fit's normal system with the bias walks held (nearly) still: their increments' rows
+    weighted ``RIGID``-fold. What a term loses to this projection the nominal *parameters* make
+    (calibration, gravity directions, a new turn-on bias after a power cycle): the visible
+    fraction. What the walks take on top is noise they can mimic: it costs power (the
+    information and minimum detectable size say how much), it does not hide the term."""
+    walk = lin.rows.of("walk_gyro") | lin.rows.of("walk_accel")
+    J_l = (sp.diags(np.where(walk, RIGID, 1.0)) @ lin.J_l).tocsr()
+    return Bordered(lin.J_g, J_l, lin.model.stages.offsets), J_l
+
+
+def examine(lin: Linearised, c: Candidate, rigid: tuple[Bordered, sp.csr_matrix] | None = None) -> Tested:
+    """The candidate's projection, visible fraction (against ``rigid``, default the fit's own
+    system), the parameters it would bias and its minimum detectable size."""
     Cp, z_g = project(lin, c.columns)
+    Cv = project(lin, c.columns, *rigid)[0] if rigid is not None else Cp
     A, B = c.columns.T @ c.columns, Cp.T @ Cp
     L = np.linalg.cholesky(A + 1e-300 * np.eye(len(A)))
     Li = np.linalg.inv(L)
-    visible = float(np.clip(np.linalg.eigvalsh(Li @ B @ Li.T).min(), 0, 1))
+    visible = float(np.sqrt(np.clip(np.linalg.eigvalsh(Li @ (Cv.T @ Cv) @ Li.T).min(), 0, 1)))
     names = lin.globals.names()
     strength = np.abs(z_g).max(axis=1)
     biases = [(names[i], float(strength[i])) for i in np.argsort(strength)[::-1][:3] if strength[i] > 0]
@@ -380,18 +484,108 @@ def raw_units(lin: Linearised, r: np.ndarray) -> dict[str, np.ndarray]:
     return out
 
 
-def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]) -> tuple[float, float]:
-    """Blocked cross-validated RMS (sensor units) of the finding's sensor rows without and with
-    its term (others already accepted are in both): folds of whole rests and motions."""
+def _fold_of_rows(lin: Linearised, stretches: int | None = FOLDS * STRETCHES_PER_FOLD) -> np.ndarray:
+    """(N,) the fold of every data row (-1: prior rows, in every training set): the recording
+    cut into ``stretches`` contiguous stretches of time (each rest and each motion whole in
+    one), dealt to the ``FOLDS`` folds in turn; ``None``: single rests and motions dealt out."""
     model = lin.model
-    groups = np.full(len(rp), -1)
+    groups = np.full(len(lin.r), -1)
     for name in ("accel_rest", "gyro_rest"):
         rows = _rows3(lin, name)
         groups[rows] = np.arange(len(rows))[:, None]
     rm = _rows3(lin, "accel_motion")
     if len(rm):
         groups[rm] = (model.n + model.accel.motion)[:, None]
-    fold = np.where(groups >= 0, (groups * 7919) % FOLDS, -1)
+    used = groups >= 0
+    if stretches is None:
+        return np.where(used, (groups * 7919) % FOLDS, -1)
+    t_group = np.bincount(groups[used], lin.rows.t[used]) / np.maximum(np.bincount(groups[used]), 1)
+    present = np.bincount(groups[used]) > 0
+    rank = np.full(len(t_group), -1)
+    order = np.flatnonzero(present)[np.argsort(t_group[present], kind="stable")]
+    rank[order] = np.arange(len(order))
+    fold = np.full(len(lin.r), -1)
+    fold[used] = (rank[groups[used]] * stretches // max(len(order), 1)) % FOLDS
+    return fold
+
+
+def _refit_predict(lin: Linearised, X: np.ndarray, k_base: int, train: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The residual on every row after a Gauss-Newton refit of the globals, every nuisance and the
+    term columns ``X`` (N, k) to the ``train`` rows (the priors always count): without the last
+    ``k - k_base`` columns and with them. One factorisation of the nuisances' system serves both."""
+    w = train.astype(float)
+    Jg = np.hstack([lin.J_g, X]) * w[:, None]
+    Jl = (sp.diags(w) @ lin.J_l).tocsr()
+    system = Bordered(Jg, Jl, lin.model.stages.offsets)
+    rw = lin.r * w
+    g_g, g_l = -(Jg.T @ rw), -np.asarray(Jl.T @ rw)
+    y = system.blocks.solve(g_l)
+    out = []
+    for P in (lin.J_g.shape[1] + k_base, Jg.shape[1]):
+        x_g = np.linalg.solve(system.S[:P, :P], g_g[:P] - system.A_lg[:, :P].T @ y)
+        x_l = y - system.X[:, :P] @ x_g
+        out.append(lin.r + np.hstack([lin.J_g, X])[:, :P] @ x_g + lin.J_l @ x_l)
+    return out[0], out[1]
+
+
+def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]
+            ) -> tuple[float, float, float]:
+    """Blocked cross-validated RMS (sensor units) of the finding's sensor rows without and with
+    its term (others already accepted are in both), and the paired z-score of the improvement
+    (``_sensor_rms``). Each fold holds ``STRETCHES_PER_FOLD`` contiguous stretches of time (whole
+    rests and motions) spread over the recording; for each fold the calibration, every nuisance
+    (bias walks, gravity directions, attitude paths) and the terms are refitted without it (one
+    linearised step) and its rows predicted. A bias walk fitted to the rows it is judged on would
+    pass for any slow term there, and it bridges single held-out rests as well as the term does;
+    one stretch per fold would leave some fold without the only motions that fix a calibration
+    parameter. A motion term is held out by single rests and motions (``_heldout_projected``):
+    only its motion's own attitude path could copy it, and a held-out motion is whole."""
+    if finding.tested.candidate.regime == "motion":
+        return _heldout_projected(lin, rp, finding, others)
+    fold = _fold_of_rows(lin)
+    X = np.hstack([f.tested.candidate.columns for f in others] + [finding.tested.candidate.columns])
+    k_base = X.shape[1] - finding.tested.candidate.columns.shape[1]
+    before, after = np.zeros_like(rp), np.zeros_like(rp)
+    try:
+        for k in range(FOLDS):
+            test = fold == k
+            if not test.any():
+                continue
+            b, a = _refit_predict(lin, X, k_base, ~test)
+            if not (np.all(np.isfinite(b[test])) and np.all(np.isfinite(a[test]))):
+                raise SolverError("a fold leaves a nuisance undetermined")
+            before[test], after[test] = b[test], a[test]
+    except (np.linalg.LinAlgError, SolverError):  # a fold whose removal leaves a nuisance free
+        return _heldout_projected(lin, rp, finding, others)
+    return _sensor_rms(lin, finding, before, after)
+
+
+def _sensor_rms(lin: Linearised, finding: Finding, before: np.ndarray, after: np.ndarray
+                ) -> tuple[float, float, float]:
+    """Held-out RMS of the finding's sensor rows without and with the term, and the z-score of
+    the improvement: the squared error's decrease summed per rest and per motion, its mean over
+    them against its standard error (paired; positive: the term predicts better)."""
+    sensor = finding.tested.candidate.sensor
+    rows = np.any(finding.tested.candidate.columns != 0, axis=1)
+    e0, group = raw_units(lin, np.where(rows, before, 0))[sensor]
+    e1, _ = raw_units(lin, np.where(rows, after, 0))[sensor]
+    used = np.any(e0 != 0, axis=1)
+    if not used.any():
+        return float("nan"), float("nan"), float("nan")
+    rms = lambda e: float(np.sqrt(np.mean(e[used] ** 2)))  # noqa: E731
+    ids, where = np.unique(group[used], return_inverse=True)
+    d = np.bincount(where, (e0[used] ** 2 - e1[used] ** 2).sum(axis=1))
+    sd = float(np.std(d, ddof=1)) if len(d) > 1 else 0.0
+    z = float(np.mean(d) / (sd / np.sqrt(len(d)))) if sd > 0 else 0.0
+    return rms(e0), rms(e1), z
+
+
+def _heldout_projected(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]
+                       ) -> tuple[float, float, float]:
+    """Single rests and motions dealt to the folds, the projected columns fitted to the nominal
+    model's residual: a motion term (only the motion's own attitude path could copy it, and a
+    held-out motion is whole), and the fallback."""
+    fold = _fold_of_rows(lin, None)
     base = np.hstack([f.tested.projected for f in others]) if others else np.zeros((len(rp), 0))
     full = np.hstack([base, finding.tested.projected])
     before, after = np.zeros_like(rp), np.zeros_like(rp)
@@ -400,10 +594,4 @@ def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Find
         for X, out in ((base, before), (full, after)):
             theta = np.linalg.lstsq(X[train], rp[train], rcond=None)[0] if X.shape[1] else np.zeros(0)
             out[test] = rp[test] - X[test] @ theta
-    sensor = finding.tested.candidate.sensor
-    rows = np.any(finding.tested.candidate.columns != 0, axis=1)
-    e0, g0 = raw_units(lin, np.where(rows, before, 0))[sensor]
-    e1, _ = raw_units(lin, np.where(rows, after, 0))[sensor]
-    used = np.any(e0 != 0, axis=1)
-    rms = lambda e: float(np.sqrt(np.mean(e[used] ** 2))) if used.any() else float("nan")  # noqa: E731
-    return rms(e0), rms(e1)
+    return _sensor_rms(lin, finding, before, after)

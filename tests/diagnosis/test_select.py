@@ -1,0 +1,85 @@
+"""A catalogue term's column is what the term, applied to the readings by the simulator, does to
+every row of the fitted model: rest means, the motions' accelerometer samples, and the rows the
+motions' gyro samples reach through the integrated attitude."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import numpy as np
+import pytest
+from forward_synth import G, noise_free_imu, rests_from_truth, small_gimbal
+
+from imupipe.diagnosis.forward import JointModel, MotionAccel, Noise, Start
+from imupipe.diagnosis.linearised import fit
+from imupipe.diagnosis.select import FOLDS, _fold_of_rows, candidates, examine, rigid_walks
+from imupipe.sim.api import known_effects, simulate_arrays
+
+SEED = 3
+EFFECTS = {
+    "gyro_g_sensitivity": {"G": [[2e-4, -1e-4, 0.0], [0.0, 1e-4, 3e-4], [-2e-4, 0.0, 1e-4]]},
+    "accel_scale_temperature": {"ppm_per_C": [300.0, -200.0, 100.0]},
+    "bias_temperature_nonlinear": {"k2_per_C2": [2e-5, -1e-5, 3e-5], "sensor": "gyro"},
+}
+
+
+def _model(out, truth):
+    rests, turns = rests_from_truth(out, truth)
+    cal = truth.calibration
+    start = Start(np.linalg.inv(cal["accel"].M), cal["accel"].b0, cal["gyro"].M, cal["gyro"].b0,
+                  cal["accel"].k, cal["gyro"].k)
+    noise = Noise(np.eye(3) * 5e-3**2, np.eye(3) * 3.5e-4**2, np.full(3, 1e-9), np.full(3, 1e-10))
+    acc = MotionAccel.select(out.t, out.raw["accel"], rests, turns)
+    return JointModel(rests, turns, G, start, noise, fit_k=True, accel=acc,
+                      temperature=(out.t, out.temperature)), rests, turns
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    imu = noise_free_imu(SEED)
+    imu["thermal"] = {**imu["thermal"], "self_heating_C": 40.0, "tau_s": 60.0}  # a few degC in a minute
+    out, truth = small_gimbal(SEED, imu)
+    model, rests, turns = _model(out, truth)
+    return imu, out, truth, model, rests, turns, fit(model, max_iter=5)
+
+
+@pytest.mark.parametrize("effect", sorted(EFFECTS))
+def test_a_terms_column_is_what_the_term_does_to_every_row(fitted, effect):
+    imu, out, truth, model, rests, turns, lin = fitted
+    params = EFFECTS[effect]
+    out2, truth2 = simulate_arrays("gimbal", {effect: params}, SEED, imu=imu, env={"gravity_m_s2": G},
+                                   grid_deg=60.0, rest_s=2.0, step_s=1.5, n_rotations=6, rotation_s=2.0)
+    rests2, turns2 = rests_from_truth(out2, truth2)
+    # the same model, the readings with the term in them (rests' means, motions' samples)
+    m2 = copy.copy(model)
+    m2.y_a, m2.y_g = rests2.need("accel"), rests2.need("gyro")
+    m2.motions = dataclasses.replace(model.motions, y=np.concatenate(turns2.gyro))
+    m2.accel = MotionAccel.select(out2.t, out2.raw["accel"], rests2, turns2)
+    dr = m2.residuals(lin.x_g, lin.x_l)[0] - lin.r
+    sensor = params.get("sensor", "accel" if effect.startswith("accel") else "gyro")
+    (c,) = [c for c in candidates(lin, np.eye(3), known_effects()) if (c.effect, c.sensor) == (effect, sensor)]
+    theta = np.ravel(params.get("G", params.get("ppm_per_C", params.get("k2_per_C2"))))
+    predicted = -c.columns @ theta  # the term in the readings: the residual grows by it
+    motion = ~(lin.rows.of("accel_rest") | lin.rows.of("gyro_rest"))
+    assert np.linalg.norm(dr[motion]) > 0.2 * np.linalg.norm(dr)  # the motions carry much of it
+    assert np.linalg.norm(dr - predicted) < 0.02 * np.linalg.norm(dr)
+    t = examine(lin, c, rigid_walks(lin))
+    assert 0 <= t.visible <= 1 and t.mde > 0
+
+
+def test_held_out_folds_are_whole_rests_and_motions_in_stretches_spread_over_the_recording(fitted):
+    lin = fitted[-1]
+    fold = _fold_of_rows(lin)
+    data = fold >= 0
+    assert not data[lin.rows.of("walk_gyro") | lin.rows.of("walk_accel") | lin.rows.of("turn")].any()
+    for block in ("accel_rest", "accel_motion"):  # one fold per rest / per motion
+        rows = lin.rows.of(block)
+        unit = lin.rows.index[rows] if block == "accel_rest" else lin.model.accel.motion[lin.rows.index[rows]]
+        for i in np.unique(unit):
+            assert len(np.unique(fold[rows][unit == i])) == 1
+    rest = lin.rows.of("accel_rest")
+    assert np.array_equal(fold[rest], fold[lin.rows.of("gyro_rest")])  # a rest's two triads together
+    order = np.argsort(lin.rows.t[rest], kind="stable")
+    runs = 1 + np.count_nonzero(np.diff(fold[rest][order]))
+    assert sorted(set(fold[data])) == list(range(FOLDS)) and runs >= FOLDS * 2  # folds recur in time
