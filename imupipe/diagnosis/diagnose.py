@@ -41,7 +41,7 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
                                             f"< {HELDOUT_Z})"})
     # structure the accepted terms leave: the generic library tested conditionally on them
     given = np.hstack([f.tested.projected for f in kept]) if kept else None
-    left = structure_cells(lin, given, rp)
+    left = structure_cells(lin, given, rp, bootstrap=True)
     for cell, flag in zip(left, benjamini_hochberg(np.array([c.p_value for c in left]), q)):
         if flag and not any(u["sensor"] == cell.sensor and u["regime"] == cell.regime
                             for u in findings if u["effect"] == "unknown"):

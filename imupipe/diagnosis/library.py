@@ -26,7 +26,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from .linearised import Linearised
 from .residual_map import windows
-from .select import VISIBLE_MIN, Signals
+from .select import BLOCK_S, VISIBLE_MIN, Signals, wild_p
 
 AXES = ("x", "y", "z")
 WARMUP_TAU_S = 120.0
@@ -49,6 +49,7 @@ class StructureCell:
     variable: str = "structure"
     lo: float = -np.inf
     hi: float = np.inf
+    p_bootstrap: float = 0.0  # the wild bootstrap's p (``structure_cells(bootstrap=True)``), else 0
 
     @property
     def chi2_per_dof(self) -> float:
@@ -56,7 +57,7 @@ class StructureCell:
 
     @property
     def p_value(self) -> float:
-        return float(chi2_dist.sf(self.chi2, self.dof))
+        return max(float(chi2_dist.sf(self.chi2, self.dof)), self.p_bootstrap)
 
 
 @dataclass
@@ -94,10 +95,12 @@ def libraries(s: Signals) -> list[_Library]:
 
 
 def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndarray | None = None,
-                    unit: dict[str, str] | None = None) -> list[StructureCell]:
+                    unit: dict[str, str] | None = None, bootstrap: bool = False) -> list[StructureCell]:
     """One cell per sensor x regime of the library (all axes) and per output axis. With ``given``
     (N, m) columns already projected off the nominal Jacobian (accepted terms) and the residual
-    ``r`` they were selected on, the test is conditional on those terms being fitted too."""
+    ``r`` they were selected on, the test is conditional on those terms being fitted too.
+    ``bootstrap``: each p-value is also the wild bootstrap's (``select.wild_p``; the projected
+    library is then formed on every row), as the diagnosis asks of a named finding."""
     s = Signals(lin)
     unit = unit or {"accel": "m/s^2", "gyro": "rad/s"}
     r = lin.r if r is None else r
@@ -134,15 +137,24 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
         lev = lin.leverage[rows] if lin.leverage is not None else np.zeros(len(rows))
         scale = max(1.0, float(r_rows @ r_rows) / max(float(np.sum(1 - lev)), 1.0))
         t_rows = lin.rows.t[rows]
+        boot = None
+        if bootstrap:
+            Cp = -(lin.J_g @ z_g) - lin.J_l @ z_l  # (I - P) C on every row
+            Cp[rows] += C
+            r_boot = r
+            if given is not None and given.shape[1]:
+                Cp -= given @ (AA_inv @ LA.T)
+                r_boot = r_after
+            boot = (Cp, r_boot, np.floor(np.nan_to_num(lin.rows.t) / BLOCK_S).astype(np.int64))
         for axes in [tuple(AXES)] + [(a,) for a in AXES]:
             sel = np.array([AXES[i] in axes for i, *_ in lib.columns])
-            cell = _score(lib, axes, sel, gram, proj, h, scale, C, t_rows, unit[lib.sensor])
+            cell = _score(lib, axes, sel, gram, proj, h, scale, C, t_rows, unit[lib.sensor], boot)
             if cell is not None:
                 out.append(cell)
     return out
 
 
-def _score(lib: _Library, axes, sel, gram, proj, h, scale, C, t_rows, unit) -> StructureCell | None:
+def _score(lib: _Library, axes, sel, gram, proj, h, scale, C, t_rows, unit, boot=None) -> StructureCell | None:
     idx = np.flatnonzero(sel & (np.diag(gram) > 0))
     if not len(idx):
         return None
@@ -174,5 +186,9 @@ def _score(lib: _Library, axes, sel, gram, proj, h, scale, C, t_rows, unit) -> S
         coef = -h[idx[j]] / (bjj[j] * d[j] ** 2)
         terms.append({"output_axis": AXES[i], "signal": name, "coefficient": float(coef),
                       "unit": f"{unit} per {ru}", "t": float(t[j])})
+    p_boot = 0.0
+    if boot is not None:
+        Cp, r_boot, groups = boot
+        p_boot = wild_p(Cp[:, idx] @ (D / d[:, None]), r_boot, groups)
     return StructureCell(lib.sensor, axes, lib.regime, stat / scale, float(ok.sum()),
-                         windows(t_rows, contrib), terms)
+                         windows(t_rows, contrib), terms, p_bootstrap=p_boot)
