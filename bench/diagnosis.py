@@ -26,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from imupipe.diagnosis.select import EARTH_RATE, NONCENTRALITY_80, VISIBLE_MIN
+from imupipe.diagnosis.select import NONCENTRALITY_80, VISIBLE_MIN
+from imupipe.effects.earth_rotation import EARTH_RATE
 from imupipe.pipeline.api import run_sessions
 from imupipe.sim.api import simulate
 

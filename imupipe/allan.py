@@ -135,6 +135,19 @@ def avar_at(fit: NoiseFit, tau: np.ndarray) -> np.ndarray:
     return out
 
 
+def batch_variance_ratio(y: np.ndarray, batches: int = 8) -> np.ndarray | None:
+    """(k,) per column of ``y`` (n, k): the variance of its ``batches`` batch means over what
+    white noise would give them (1 for white noise; above 1 when neighbouring samples agree);
+    None when a batch would hold fewer than 2 samples. Columns without spread give NaN."""
+    m = len(y) // batches
+    if m < 2:
+        return None
+    means = y[: m * batches].reshape(batches, m, -1).mean(1)
+    white = y.var(0, ddof=1) / m
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(white > 0, means.var(0, ddof=1) / white, np.nan)
+
+
 def effective_sample_size(var_sample: np.ndarray, duration_s: np.ndarray, count: np.ndarray,
                           fit: NoiseFit) -> np.ndarray:
     """(n,) samples of white noise that would give a rest's mean the variance it has under the

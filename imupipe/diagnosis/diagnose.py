@@ -12,10 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..effects.earth_rotation import EARTH_RATE
 from .evaluate import Evaluation
 from .library import structure_cells
 from .residual_map import benjamini_hochberg, windows
-from .select import (BLOCK_S, BOOT_DRAWS, EARTH_RATE, HELDOUT_Z, Q_FDR, REVEAL, UNTESTED, VISIBLE_MIN, Finding,
+from .select import (BLOCK_S, BOOT_DRAWS, HELDOUT_Z, Q_FDR, REVEAL, UNTESTED, VISIBLE_MIN, Finding,
                      candidates, examine, heldout, rigid_walks, select)
 
 AXES = ("x", "y", "z")
@@ -117,33 +118,37 @@ def _finding(lin, rp: np.ndarray, f: Finding, others: list[Finding], effects: di
     }
 
 
+def _unknown_finding(sensor: str, axes: list, regime: str, windows: list, parameters: dict,
+                     statistic: float, p_value: float, explanation: str) -> dict:
+    """A finding no catalogue term explains: where, how strong, and what it correlates with."""
+    return {"effect": "unknown", "sensor": sensor, "axes": list(axes), "regime": regime,
+            "windows": [list(w) for w in windows], "parameters": parameters,
+            "significance": {"statistic": statistic, "p_value": p_value, "delta_bic": None},
+            "heldout_rms_before": None, "heldout_rms_after": None, "heldout_z": None,
+            "explanation": explanation}
+
+
 def _unknown(cell: dict) -> dict:
+    """From a flagged chi2/dof cell of the map."""
     var, (lo, hi) = cell["variable"], cell["range"]
-    return {
-        "effect": "unknown", "sensor": cell["sensor"], "axes": cell["axes"], "regime": cell["regime"],
-        "windows": cell.get("windows", []), "parameters": {},
-        "significance": {"statistic": cell["chi2"], "p_value": cell["p_value"], "delta_bic": None},
-        "heldout_rms_before": None, "heldout_rms_after": None, "heldout_z": None,
-        "explanation": (f"The {cell['sensor']} {'/'.join(cell['axes'])} residuals in the {cell['regime']} rows "
-                        f"with {var} in [{lo}, {hi}] have chi2/dof {cell['chi2_per_dof']:.2f} and no catalogue "
-                        "term explains them: look at those windows (an unmodelled disturbance, a knock, a "
-                        "vibrating support or physics outside the catalogue)."),
-    }
+    return _unknown_finding(
+        cell["sensor"], cell["axes"], cell["regime"], cell.get("windows", []), {}, cell["chi2"], cell["p_value"],
+        f"The {cell['sensor']} {'/'.join(cell['axes'])} residuals in the {cell['regime']} rows "
+        f"with {var} in [{lo}, {hi}] have chi2/dof {cell['chi2_per_dof']:.2f} and no catalogue "
+        "term explains them: look at those windows (an unmodelled disturbance, a knock, a "
+        "vibrating support or physics outside the catalogue).")
 
 
 def _structure(cell) -> dict:
+    """From a structure cell still significant given the accepted terms."""
     follows = "; ".join(f"{t['signal']} on {t['output_axis']} ({t['coefficient']:.3g} {t['unit']}, t = {t['t']:.1f})"
                         for t in cell.terms)
-    return {
-        "effect": "unknown", "sensor": cell.sensor, "axes": list(cell.axes), "regime": cell.regime,
-        "windows": [list(w) for w in cell.windows], "parameters": {"follows": cell.terms},
-        "significance": {"statistic": cell.chi2, "p_value": cell.p_value, "delta_bic": None},
-        "heldout_rms_before": None, "heldout_rms_after": None,
-        "explanation": (f"The {cell.sensor} {'/'.join(cell.axes)} residuals in the {cell.regime} rows follow "
-                        f"signals the model already reconstructs (score chi2 {cell.chi2:.1f} on {cell.dof:g} "
-                        f"directions, p = {cell.p_value:.2g}) and no accepted catalogue term explains it; "
-                        f"strongest: {follows}."),
-    }
+    return _unknown_finding(
+        cell.sensor, cell.axes, cell.regime, cell.windows, {"follows": cell.terms}, cell.chi2, cell.p_value,
+        f"The {cell.sensor} {'/'.join(cell.axes)} residuals in the {cell.regime} rows follow "
+        f"signals the model already reconstructs (score chi2 {cell.chi2:.1f} on {cell.dof:g} "
+        f"directions, p = {cell.p_value:.2g}) and no accepted catalogue term explains it; "
+        f"strongest: {follows}.")
 
 
 def _json(v):

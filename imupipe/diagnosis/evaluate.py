@@ -29,6 +29,7 @@ import pyarrow as pa
 from .. import schemas
 from scipy.stats import chi2 as chi2_dist
 
+from ..allan import batch_variance_ratio
 from ..models import T_REF_C, TriadCalibration
 from ..observations import Rests, Turns
 from ..solvers.joint_ml import lower_gauge
@@ -79,15 +80,9 @@ def effective_counts(rests: Rests, streams: Mapping[str, tuple[np.ndarray, np.nd
         i0 = np.searchsorted(t, rests.t_start_s)
         i1 = np.searchsorted(t, rests.t_end_s, "right")
         for i in range(len(rests)):
-            seg = y[i0[i]:i1[i]]
-            k = len(seg) // ESS_BATCHES
-            if k < 2:
-                continue
-            means = seg[: k * ESS_BATCHES].reshape(ESS_BATCHES, k, 3).mean(1)
-            white = seg.var(0, ddof=1) / k
-            ok = white > 0
-            if ok.any():
-                ratio[i] = float(np.median(means.var(0, ddof=1)[ok] / white[ok]))
+            r = batch_variance_ratio(y[i0[i]:i1[i]], ESS_BATCHES)
+            if r is not None and np.isfinite(r).any():
+                ratio[i] = float(np.median(r[np.isfinite(r)]))
         factor = np.where(ratio > crit, ratio, max(1.0, float(np.median(ratio))))
         counts[sensor] = n / np.maximum(factor, 1.0)
     return Rests(rests.t_start_s, rests.t_end_s, rests.count, rests.mean, rests.cov, rests.temperature,

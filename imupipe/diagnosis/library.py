@@ -26,7 +26,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from .linearised import Linearised
 from .residual_map import windows
-from .select import BLOCK_S, VISIBLE_MIN, Signals, wild_p
+from .select import VISIBLE_MIN, Signals, time_blocks, wild_p
 
 AXES = ("x", "y", "z")
 WARMUP_TAU_S = 120.0
@@ -145,7 +145,7 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
             if given is not None and given.shape[1]:
                 Cp -= given @ (AA_inv @ LA.T)
                 r_boot = r_after
-            boot = (Cp, r_boot, np.floor(np.nan_to_num(lin.rows.t) / BLOCK_S).astype(np.int64))
+            boot = (Cp, r_boot, time_blocks(lin))
         for axes in [tuple(AXES)] + [(a,) for a in AXES]:
             sel = np.array([AXES[i] in axes for i, *_ in lib.columns])
             cell = _score(lib, axes, sel, gram, proj, h, scale, C, t_rows, unit[lib.sensor], boot)

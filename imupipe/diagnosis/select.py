@@ -355,6 +355,11 @@ def _score(r: np.ndarray, Cp: np.ndarray, scale: float) -> tuple[float, np.ndarr
     return float(g @ theta) / scale, theta
 
 
+def time_blocks(lin: Linearised) -> np.ndarray:
+    """(N,) the ``BLOCK_S`` time block of every row of the fit: the wild bootstrap's units."""
+    return np.floor(np.nan_to_num(lin.rows.t) / BLOCK_S).astype(np.int64)
+
+
 def wild_p(Cp: np.ndarray, r: np.ndarray, groups: np.ndarray, draws: int = BOOT_DRAWS) -> float:
     """p-value of the score statistic ``r' Cp (Cp' Cp)^-1 Cp' r`` by a wild bootstrap over time
     blocks (``groups``: each row's block): every draw flips the sign of whole blocks of the
@@ -398,8 +403,7 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR) -> tuple[np.
     pool = [t for t in tested if t.visible >= VISIBLE_MIN]
     accepted: list[Finding] = []
 
-    t_rows = np.nan_to_num(lin.rows.t)
-    groups = np.floor((t_rows - t_rows.min()) / BLOCK_S).astype(np.int64)
+    groups = time_blocks(lin)
 
     def stat(t: Tested, others: list[Finding]) -> tuple[float, float, float]:
         """Score statistic, its p-value (the larger of the asymptotic and the wild bootstrap's)

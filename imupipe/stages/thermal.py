@@ -68,13 +68,12 @@ def _honest_cov(fit, z: np.ndarray, batches: int = 8):
     show: their chi2/dof and, from ``batches`` batch means, their correlation (a bias walk or a
     lagging read-out over the warm-up makes neighbouring averages agree, and the white-noise
     covariance then understates the uncertainty of k several-fold)."""
-    n = len(z)
-    factor = np.maximum(1.0, np.sum(z ** 2, axis=0) / max(n - 2, 1))
-    m = n // batches
-    if m >= 2:
-        means = z[: m * batches].reshape(batches, m, 3).mean(1)
-        ratio = means.var(0, ddof=1) / (z.var(0, ddof=1) / m)
-        factor = factor * np.maximum(1.0, ratio)
+    from ..allan import batch_variance_ratio  # SciPy's optimize: loaded when a stage runs
+
+    factor = np.maximum(1.0, np.sum(z ** 2, axis=0) / max(len(z) - 2, 1))
+    ratio = batch_variance_ratio(z, batches)
+    if ratio is not None:
+        factor = factor * np.maximum(1.0, np.nan_to_num(ratio, nan=1.0))
     d = np.sqrt(np.tile(factor, 2))  # b0 (3), k (3): each axis by its own factor
     return dataclasses.replace(fit, cov=np.asarray(fit.cov) * np.outer(d, d))
 

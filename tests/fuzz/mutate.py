@@ -333,13 +333,18 @@ def self_reference(rng, folder, suffix, data):
     return Case("self_reference", "bad", _write(folder, "r/session.toml", a.format(target)))
 
 
+def _accel_csv(folder, name: str, data: bytes) -> None:
+    """The accelerometer columns of a session CSV as a t, x, y, z CSV at ``folder/name``."""
+    table = Csv.parse(data.decode("utf-8"))
+    _write(folder, name, Csv(["t", "x", "y", "z"],
+                             [[r[0]] + [r[i] for i in table.cols("accel")] for r in table.rows]).text())
+
+
 @mutation
 def nan_sections(rng, folder, suffix, data):
     if suffix != ".csv":
         return _write_case(rng, folder, suffix, data)
-    table = Csv.parse(data.decode("utf-8"))
-    sub = Csv(["t", "x", "y", "z"], [[r[0]] + [r[i] for i in table.cols("accel")] for r in table.rows])
-    _write(folder, "n/a.csv", sub.text())
+    _accel_csv(folder, "n/a.csv", data)
     bound = str(rng.choice(["nan", "inf", "-inf", "1e30"]))
     text = ('[session]\nname = "n"\n[[streams]]\nstream = "accel"\nfile = "a.csv"\n'
             f'time_unit = "ns"\n[sections]\nitems = {{ rest = [{bound}, 10] }}\n')
@@ -350,9 +355,7 @@ def nan_sections(rng, folder, suffix, data):
 def triad_as_temperature(rng, folder, suffix, data):
     if suffix != ".csv":
         return _write_case(rng, folder, suffix, data)
-    table = Csv.parse(data.decode("utf-8"))
-    sub = Csv(["t", "x", "y", "z"], [[r[0]] + [r[i] for i in table.cols("accel")] for r in table.rows])
-    _write(folder, "t/a.csv", sub.text())
+    _accel_csv(folder, "t/a.csv", data)
     text = ('[session]\nname = "t"\n[[streams]]\nstream = "accel"\nfile = "a.csv"\n'
             'time_unit = "ns"\n[[streams]]\nstream = "temperature"\nfile = "a.csv"\n'
             'time_unit = "ns"\n')
