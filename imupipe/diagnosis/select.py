@@ -219,7 +219,8 @@ class Signals:
 
             m = copy.copy(model)
             m.motions = dataclasses.replace(model.motions, y=model.motions.y + h * d)
-            out[:, j] = -(m.residuals(lin.x_g, lin.x_l)[0] - self.r0) / h  # the term in the prediction: r falls
+            r = m.residuals(lin.x_g, lin.x_l, jacobian=False)[0]
+            out[:, j] = -(r - self.r0) / h  # the term in the prediction: r falls
         return out
 
 
@@ -366,13 +367,19 @@ def wild_p(Cp: np.ndarray, r: np.ndarray, groups: np.ndarray, draws: int = BOOT_
     residual. It keeps the recording's own noise -- correlated within a block, of any size and
     shape -- and needs no noise model; a term that is really there is consistent across blocks
     and stands out of the flipped draws. Deterministic (seeded)."""
-    Binv = np.linalg.pinv(Cp.T @ Cp)
     _, inv = np.unique(groups, return_inverse=True)
     G = inv.max() + 1
     g_b = np.column_stack([np.bincount(inv, Cp[:, j] * r, G) for j in range(Cp.shape[1])])  # (G, k)
+    return block_wild_p(g_b, Cp.T @ Cp, draws)
+
+
+def block_wild_p(g_b: np.ndarray, B: np.ndarray, draws: int = BOOT_DRAWS) -> float:
+    """``wild_p`` from each block's score ``g_b`` (G, k), the sum over its rows of ``Cp * r``,
+    and the term's information ``B = Cp' Cp`` (k, k)."""
+    Binv = np.linalg.pinv(B)
     g = g_b.sum(0)
     T = float(g @ Binv @ g)
-    signs = np.random.default_rng(0).choice([-1.0, 1.0], (draws, G))
+    signs = np.random.default_rng(0).choice([-1.0, 1.0], (draws, len(g_b)))
     gs = signs @ g_b
     T_star = np.einsum("dk,kl,dl->d", gs, Binv, gs)
     return float((1 + np.sum(T_star >= T)) / (draws + 1))
