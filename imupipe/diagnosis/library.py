@@ -11,9 +11,10 @@ specific force, temperature terms and a warm-up exponential for the acceleromete
 specific force, temperature squared and the warm-up for the gyro, whose slow terms
 reach the motions through the attitude)? The library is
 whitened like the residual and projected off the nominal Jacobian (calibration and
-every nuisance: what the model can already do), directions less than
-``VISIBLE_MIN`` visible are dropped, and the score statistic ``r' P_L r`` is chi-square
-with the kept directions' count under the null. Its noncentrality is what a fitted
+every nuisance: what the model can already do), directions the nominal parameters leave
+less than ``VISIBLE_MIN`` visible (the bias walks held still, as for a catalogue term) are
+dropped, and the score statistic ``r' P_L r`` (the walks free) is chi-square with the kept
+directions' count under the null. Its noncentrality is what a fitted
 term would remove, so a structure cell sees an effect near the catalogue tests'
 detection limit, names its sensor, axis and regime, and says which signals it follows
 (the library terms with the largest t) -- the catalogue is not consulted.
@@ -30,11 +31,12 @@ from scipy.stats import chi2 as chi2_dist
 
 from .linearised import Linearised
 from .residual_map import windows
-from .select import VISIBLE_MIN, Signals, block_wild_p, time_blocks
+from .select import VISIBLE_MIN, Signals, block_wild_p, rigid_walks, time_blocks
 
 AXES = ("x", "y", "z")
 WARMUP_TAU_S = 120.0
 CHUNK = 8192  # readings whose library columns are formed at once
+INFO_MIN = 1e-6  # a direction with less of its information left than this is not tested (numerically nil)
 _PAIRS = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]
 
 
@@ -210,6 +212,7 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
         _, blocks = np.unique(time_blocks(lin), return_inverse=True)
         Gr = sp.csr_matrix((r_use, (blocks, np.arange(N))), shape=(blocks.max() + 1, N))
         S_g, S_l = Gr @ lin.J_g, Gr @ lin.J_l
+    rigid = rigid_walks(lin)[0]
     out = []
     for lib in libraries(s):
         k = len(lib.columns)
@@ -232,6 +235,10 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
         z_g, z_l = lin.system.solve(JgC, JlC)
         # C'(I - P)C and C'(I - P)r without forming (I - P)C, which would fill every row
         proj = gram - JgC.T @ z_g - JlC.T @ z_l
+        # what the nominal parameters alone leave visible: the walks held still (the columns are
+        # zero on the walks' rows, so only the system differs)
+        v_g, v_l = rigid.solve(JgC, JlC)
+        visible = gram - JgC.T @ v_g - JlC.T @ v_l
         h = Cr - z_g.T @ Jr_g - z_l.T @ Jr_l
         if conditional:
             proj = proj - LA @ AA_inv @ LA.T
@@ -245,38 +252,47 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
         scored = []
         for axes in [tuple(AXES)] + [(a,) for a in AXES]:
             sel = np.array([AXES[i] in axes for i, *_ in lib.columns])
-            cell = _score(lib, axes, sel, gram, proj, h, scale, unit[lib.sensor], g_b)
+            cell = _score(lib, axes, sel, gram, visible, proj, h, scale, unit[lib.sensor], g_b)
             if cell is not None:
                 scored.append(cell)
         out += _with_windows(lin, lib, scored)
     return out
 
 
-def _score(lib: _Library, axes, sel, gram, proj, h, scale, unit, g_b=None) -> tuple[StructureCell, np.ndarray] | None:
-    """The cell's score test and its fitted library term ``w`` (k,), raw column coordinates."""
+def _score(lib: _Library, axes, sel, gram, visible, proj, h, scale, unit, g_b=None
+           ) -> tuple[StructureCell, np.ndarray] | None:
+    """The cell's score test and its fitted library term ``w`` (k,), raw column coordinates. The
+    directions tested are those the nominal parameters leave ``VISIBLE_MIN`` visible (``visible``:
+    C'(I - P)C with the bias walks held still, as a catalogue term's visible fraction); the test
+    uses the information left with the walks free (``proj``): a slow term the walks could copy
+    is still tested, with the power that leaves (``select``'s candidates do the same)."""
     idx = np.flatnonzero(sel & (np.diag(gram) > 0))
     if not len(idx):
         return None
     d = np.sqrt(np.diag(gram)[idx])
-    A = gram[np.ix_(idx, idx)] / np.outer(d, d)
-    B = proj[np.ix_(idx, idx)] / np.outer(d, d)
+    norm = np.outer(d, d)
+    A, Bv, B = gram[np.ix_(idx, idx)] / norm, visible[np.ix_(idx, idx)] / norm, proj[np.ix_(idx, idx)] / norm
     hn = h[idx] / d
     lam, V = np.linalg.eigh(A)  # an orthonormal basis of the library's span
     keep = lam > 1e-10 * lam.max()
     T = V[:, keep] / np.sqrt(lam[keep])
-    vis, U = np.linalg.eigh(T.T @ B @ T)  # visible fraction of each direction of that span
+    vis, U = np.linalg.eigh(T.T @ Bv @ T)  # visible fraction of each direction of that span
     ok = vis >= VISIBLE_MIN
     if not ok.any():
         return None
-    D = T @ U[:, ok]  # directions (normalised column coordinates) the model cannot make
+    info, E = np.linalg.eigh(U[:, ok].T @ (T.T @ B @ T) @ U[:, ok])  # the same directions, walks free
+    good = info > INFO_MIN
+    if not good.any():
+        return None
+    D = T @ U[:, ok] @ E[:, good]  # directions (normalised column coordinates) tested
     score = D.T @ hn
-    stat = float(np.sum(score ** 2 / vis[ok]))
-    theta = -D @ (score / vis[ok])  # the fitted library term (normalised coordinates)
+    stat = float(np.sum(score ** 2 / info[good]))
+    theta = -D @ (score / info[good])  # the fitted library term (normalised coordinates)
     w = np.zeros(len(lib.columns))
     w[idx] = theta / d
     # the signals the structure follows: marginal t of each projected column, largest first
     bjj = np.diag(B)
-    shown = bjj >= VISIBLE_MIN  # a column the nominal model absorbs has no t of its own
+    shown = (np.diag(Bv) >= VISIBLE_MIN) & (bjj > INFO_MIN)  # a column the model absorbs has no t of its own
     t = np.where(shown, hn / np.sqrt(np.where(shown, bjj, 1.0)), 0.0)
     terms = []
     for j in [j for j in np.argsort(-np.abs(t)) if shown[j]][:3]:
@@ -288,7 +304,7 @@ def _score(lib: _Library, axes, sel, gram, proj, h, scale, unit, g_b=None) -> tu
     if g_b is not None:
         M = D / d[:, None]  # the tested directions in raw column coordinates
         p_boot = block_wild_p(g_b[:, idx] @ M, M.T @ proj[np.ix_(idx, idx)] @ M)
-    return StructureCell(lib.sensor, axes, lib.regime, stat / scale, float(ok.sum()), [], terms,
+    return StructureCell(lib.sensor, axes, lib.regime, stat / scale, float(good.sum()), [], terms,
                          p_bootstrap=p_boot), w
 
 

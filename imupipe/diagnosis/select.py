@@ -481,17 +481,18 @@ def _earth_or_g(accepted: list[Finding], pool: list[Tested], stat, n_rows: int) 
                                                 p_asymptotic=pa_e)
 
 
-def raw_units(lin: Linearised, r: np.ndarray) -> dict[str, np.ndarray]:
-    """Un-whitened residual rows per sensor (accel rest + motion, gyro rest), sensor units,
-    with each row's group id (rest ``i`` -> i, motion sample of motion ``j`` -> n + j)."""
+def raw_units(lin: Linearised, r: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per sensor: its residual rows (accel rest + motion, gyro rest) un-whitened, in sensor
+    units; each row's group id (rest ``i`` -> i, motion sample of motion ``j`` -> n + j); and
+    the same rows whitened."""
     model = lin.model
     out = {}
     ra, rg, rm = _rows3(lin, "accel_rest"), _rows3(lin, "gyro_rest"), _rows3(lin, "accel_motion")
     n = model.n
     e_a = np.linalg.solve(model.W_a, r[ra][:, :, None])[:, :, 0]
     e_m = np.linalg.solve(model.W_sample, r[rm].T).T if len(rm) else np.zeros((0, 3))
-    out["accel"] = (np.vstack([e_a, e_m]), np.r_[np.arange(n), n + model.accel.motion])
-    out["gyro"] = (np.linalg.solve(model.W_g, r[rg][:, :, None])[:, :, 0], np.arange(n))
+    out["accel"] = (np.vstack([e_a, e_m]), np.r_[np.arange(n), n + model.accel.motion], np.vstack([r[ra], r[rm]]))
+    out["gyro"] = (np.linalg.solve(model.W_g, r[rg][:, :, None])[:, :, 0], np.arange(n), r[rg])
     return out
 
 
@@ -574,18 +575,19 @@ def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Find
 def _sensor_rms(lin: Linearised, finding: Finding, before: np.ndarray, after: np.ndarray
                 ) -> tuple[float, float, float]:
     """Held-out RMS of the finding's sensor rows without and with the term, and the z-score of
-    the improvement: the squared error's decrease summed per rest and per motion, its mean over
-    them against its standard error (paired; positive: the term predicts better)."""
+    the improvement: the whitened squared error's decrease (the model's own weights: a precise
+    rest mean counts for more than a noisy motion sample) summed per rest and per motion, its
+    mean over them against its standard error (paired; positive: the term predicts better)."""
     sensor = finding.tested.candidate.sensor
     rows = np.any(finding.tested.candidate.columns != 0, axis=1)
-    e0, group = raw_units(lin, np.where(rows, before, 0))[sensor]
-    e1, _ = raw_units(lin, np.where(rows, after, 0))[sensor]
+    e0, group, w0 = raw_units(lin, np.where(rows, before, 0))[sensor]
+    e1, _, w1 = raw_units(lin, np.where(rows, after, 0))[sensor]
     used = np.any(e0 != 0, axis=1)
     if not used.any():
         return float("nan"), float("nan"), float("nan")
     rms = lambda e: float(np.sqrt(np.mean(e[used] ** 2)))  # noqa: E731
     ids, where = np.unique(group[used], return_inverse=True)
-    d = np.bincount(where, (e0[used] ** 2 - e1[used] ** 2).sum(axis=1))
+    d = np.bincount(where, (w0[used] ** 2 - w1[used] ** 2).sum(axis=1))
     sd = float(np.std(d, ddof=1)) if len(d) > 1 else 0.0
     z = float(np.mean(d) / (sd / np.sqrt(len(d)))) if sd > 0 else 0.0
     return rms(e0), rms(e1), z
