@@ -47,17 +47,34 @@ def write_text(path: Path, text: str) -> None:
         tmp.write_text(text)
 
 
-def write_bytes(path: Path, data: bytes) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
+class _Hashing:
+    """A write-only stream that hashes and counts the bytes passing through it (on to ``out``):
+    Arrow IPC is digested and written without ever holding the whole file in memory."""
+
+    def __init__(self, out=None):
+        self.sha256, self.size, self.out, self.closed = hashlib.sha256(), 0, out, False
+
+    def write(self, data) -> int:
+        self.sha256.update(data)
+        self.size += len(data)
+        if self.out is not None:
+            self.out.write(data)
+        return len(data)
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        self.closed = True
 
 
-def arrow_bytes(table: pa.Table) -> bytes:
-    """``table`` as the bytes of an Arrow IPC file."""
-    sink = pa.BufferOutputStream()
-    with ipc.new_file(sink, table.schema) as writer:
-        writer.write_table(table)
-    return sink.getvalue().to_pybytes()
+def write_arrow_hashed(path: Path, table: pa.Table) -> tuple[int, str]:
+    """Write ``table`` as an Arrow IPC file, atomically; return its size and sha256."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        sink = _Hashing(fh)
+        with ipc.new_file(pa.PythonFile(sink, mode="w"), table.schema) as writer:
+            writer.write_table(table)
+    return sink.size, sink.sha256.hexdigest()
 
 
 def write_arrow(path: Path, table: pa.Table) -> None:
@@ -86,12 +103,10 @@ def file_digest(path: Path, chunk: int = 1 << 20) -> str:
 
 def table_digest(table: pa.Table) -> str:
     """sha256 of a table's content (schema incl. metadata, and data), independent of chunking."""
-    h = hashlib.sha256()
-    sink = pa.BufferOutputStream()
-    with ipc.new_stream(sink, table.schema) as writer:
+    sink = _Hashing()
+    with ipc.new_stream(pa.PythonFile(sink, mode="w"), table.schema) as writer:
         writer.write_table(table.combine_chunks())
-    h.update(sink.getvalue())
-    return h.hexdigest()
+    return sink.sha256.hexdigest()
 
 
 def remove(path: Path) -> None:

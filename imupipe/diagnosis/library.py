@@ -6,12 +6,15 @@ excess is below the noise of the count, sqrt(2 dof)). A structure cell asks a na
 question of the same rows: is the whitened residual correlated with a small, generic
 library of smooth signals of what the model already reconstructs (per output axis:
 products of the rates, angular acceleration and the rate of change of specific force
-in motion; products of the specific force, temperature terms and a warm-up
-exponential at rest; the specific force for the gyro at rest)? The library is
+in motion; static terms on every reading, as a catalogue term acts: products of the
+specific force, temperature terms and a warm-up exponential for the accelerometer, the
+specific force, temperature squared and the warm-up for the gyro, whose slow terms
+reach the motions through the attitude)? The library is
 whitened like the residual and projected off the nominal Jacobian (calibration and
-every nuisance: what the model can already do), directions less than
-``VISIBLE_MIN`` visible are dropped, and the score statistic ``r' P_L r`` is chi-square
-with the kept directions' count under the null. Its noncentrality is what a fitted
+every nuisance: what the model can already do), directions the nominal parameters leave
+less than ``VISIBLE_MIN`` visible (the bias walks held still, as for a catalogue term) are
+dropped, and the score statistic ``r' P_L r`` (the walks free) is chi-square with the kept
+directions' count under the null. Its noncentrality is what a fitted
 term would remove, so a structure cell sees an effect near the catalogue tests'
 detection limit, names its sensor, axis and regime, and says which signals it follows
 (the library terms with the largest t) -- the catalogue is not consulted.
@@ -19,17 +22,21 @@ detection limit, names its sensor, axis and regime, and says which signals it fo
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.stats import chi2 as chi2_dist
 
 from .linearised import Linearised
 from .residual_map import windows
-from .select import VISIBLE_MIN, Signals, time_blocks, wild_p
+from .select import VISIBLE_MIN, Signals, block_wild_p, rigid_walks, time_blocks
 
 AXES = ("x", "y", "z")
 WARMUP_TAU_S = 120.0
+CHUNK = 8192  # readings whose library columns are formed at once
+INFO_MIN = 1e-6  # a direction with less of its information left than this is not tested (numerically nil)
 _PAIRS = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]
 
 
@@ -61,37 +68,124 @@ class StructureCell:
 
 
 @dataclass
+class _Readings:
+    """Rows whose readings a library's regressors act on directly (rest means, motion samples):
+    column ``c`` adds ``X[:, c]`` to raw axis ``axis[c]``, whitened by ``W`` ((3, 3) or (n, 3, 3))."""
+
+    rows: np.ndarray  # (n, 3) rows of the fit
+    W: np.ndarray
+    X: np.ndarray  # (n, u): the library's signals; column c uses signal use[c]
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def form(self, sl: slice, axis: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        W = self.W if self.W.ndim == 2 else self.W[sl]
+        C = -(W[..., :, axis] * self.X[sl][:, None, use])  # d r / d theta: whitener column times regressor
+        return self.rows[sl].ravel(), C.reshape(-1, len(axis))
+
+
+@dataclass
+class _Carried:
+    """Motion rows a slow gyro term reaches through the integrated attitude: over a motion's few
+    seconds the term is its mean there, a constant gyro bias, so its column on those rows is the
+    bias's Jacobian column ``J`` (m, 3) times that mean ``X`` (m, k) (exact differencing would
+    cost a residual evaluation per column)."""
+
+    rows: np.ndarray  # (m,)
+    J: np.ndarray
+    X: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def form(self, sl: slice, axis: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.rows[sl], self.J[sl][:, axis] * self.X[sl][:, use]
+
+
+@dataclass
 class _Library:
     sensor: str
     regime: str
-    rows: np.ndarray  # (n, 3) rows of the fit
-    W: np.ndarray  # (3, 3) or (n, 3, 3) whitener of those rows
-    columns: list[tuple[int, str, np.ndarray, str]]  # (output axis, name, regressor (n,), unit)
+    columns: list[tuple[int, str, str, int]]  # (output axis, name, unit, signal index)
+    parts: list  # _Readings / _Carried on disjoint rows
+
+    def chunks(self):
+        """(rows, C) pieces of the whitened columns, ``CHUNK`` readings at a time: never all rows."""
+        axis = np.array([c[0] for c in self.columns])
+        use = np.array([c[3] for c in self.columns])
+        for part in self.parts:
+            for a in range(0, len(part), CHUNK):
+                yield part.form(slice(a, a + CHUNK), axis, use)
+
+
+def _static(f: np.ndarray, dT: np.ndarray, warm: np.ndarray, gyro: bool) -> list[tuple[str, np.ndarray, str]]:
+    """(name, regressor, unit) of a triad's static library at some readings: products of the
+    specific force and temperature terms (accelerometer) or the specific force (gyro), the
+    temperature squared and a warm-up exponential."""
+    if gyro:
+        out = [(f"f_{AXES[j]}", f[:, j], "m/s^2") for j in range(3)]
+    else:
+        out = [(f"f_{AXES[j]}*f_{AXES[k]}", f[:, j] * f[:, k], "(m/s^2)^2") for j, k in _PAIRS]
+        out += [(f"f_{AXES[j]}*dT", f[:, j] * dT, "m/s^2 degC") for j in range(3)]
+    return out + [("dT^2", dT ** 2, "degC^2"), (f"exp(-t_on/{WARMUP_TAU_S:g} s)", warm, "1")]
+
+
+def _per_axis(signals: list) -> list[tuple[int, str, str, int]]:
+    """Every signal on every output axis: (axis, name, unit, signal index)."""
+    return [(i, name, unit, u) for i in range(3) for u, (name, _, unit) in enumerate(signals)]
+
+
+def _matrix(signals: list) -> np.ndarray:
+    return np.column_stack([x for _, x, _ in signals])
 
 
 def libraries(s: Signals) -> list[_Library]:
+    """The static libraries act on every reading, as the catalogue's terms do (a slow term left out
+    of the motions is one the bias walk copies at the rests for free): the accelerometer's on its
+    rest means and motion samples, the gyro's on its rest means and, for its slow signals, through
+    the motions' attitude (``_Carried``)."""
+    model, lin = s.model, s.lin
+    warm = lambda t_on: np.exp(-t_on / WARMUP_TAU_S)  # noqa: E731
     out = []
-    dT, f_r = s.model.dT, s.f_rest
-    warm = np.exp(-s.t_on_rest / WARMUP_TAU_S)
-    static_a, static_g = [], []
-    for i in range(3):
-        static_a += [(i, f"f_{AXES[j]}*f_{AXES[k]}", f_r[:, j] * f_r[:, k], "(m/s^2)^2") for j, k in _PAIRS]
-        static_a += [(i, f"f_{AXES[j]}*dT", f_r[:, j] * dT, "m/s^2 degC") for j in range(3)]
-        static_a += [(i, "dT^2", dT ** 2, "degC^2"), (i, f"exp(-t_on/{WARMUP_TAU_S:g} s)", warm, "1")]
-        static_g += [(i, f"f_{AXES[j]}", f_r[:, j], "m/s^2") for j in range(3)]
-        static_g += [(i, "dT^2", dT ** 2, "degC^2"), (i, f"exp(-t_on/{WARMUP_TAU_S:g} s)", warm, "1")]
-    out.append(_Library("accel", "static", s.rows_a, s.W_a, static_a))
-    out.append(_Library("gyro", "static", s.rows_g, s.W_g, static_g))
+    rest_a = _static(s.f_rest, model.dT, warm(s.t_on_rest), gyro=False)
+    parts = [_Readings(s.rows_a, s.W_a, _matrix(rest_a))]
+    if s.has_motion and len(s.rows_m):
+        motion_a = _static(s.f_motion, model.dT_acc, warm(s.t_on_motion), gyro=False)
+        parts.append(_Readings(s.rows_m, model.W_sample, _matrix(motion_a)))
+    out.append(_Library("accel", "static", _per_axis(rest_a), parts))
+
+    rest_g = _static(s.f_rest, model.dT, warm(s.t_on_rest), gyro=True)
+    parts = [_Readings(s.rows_g, s.W_g, _matrix(rest_g))]
+    if s.has_gyro_motion:
+        parts.append(_carried(lin, _static(s.f_gyro_motion, model.dT_gyro, warm(s.t_on_gyro_motion), gyro=True)))
+    out.append(_Library("gyro", "static", _per_axis(rest_g), parts))
+
     if s.has_motion and len(s.rows_m):
         w, a, fd, f = s.omega, s.alpha, s.f_dot, s.f_motion
-        motion = []
-        for i in range(3):
-            motion += [(i, f"w_{AXES[j]}*w_{AXES[k]}", w[:, j] * w[:, k], "(rad/s)^2") for j, k in _PAIRS]
-            motion += [(i, f"alpha_{AXES[j]}", a[:, j], "rad/s^2") for j in range(3)]
-            motion += [(i, f"fdot_{AXES[j]}", fd[:, j], "m/s^3") for j in range(3)]
-            motion += [(i, f"f_{AXES[j]}*f_{AXES[k]}", f[:, j] * f[:, k], "(m/s^2)^2") for j, k in _PAIRS]
-        out.append(_Library("accel", "motion", s.rows_m, s.model.W_sample, motion))
-    return [lib for lib in out if len(lib.rows)]
+        motion = [(f"w_{AXES[j]}*w_{AXES[k]}", w[:, j] * w[:, k], "(rad/s)^2") for j, k in _PAIRS]
+        motion += [(f"alpha_{AXES[j]}", a[:, j], "rad/s^2") for j in range(3)]
+        motion += [(f"fdot_{AXES[j]}", fd[:, j], "m/s^3") for j in range(3)]
+        motion += [(f"f_{AXES[j]}*f_{AXES[k]}", f[:, j] * f[:, k], "(m/s^2)^2") for j, k in _PAIRS]
+        out.append(_Library("accel", "motion", _per_axis(motion), [_Readings(s.rows_m, model.W_sample, _matrix(motion))]))
+    return [lib for lib in out if sum(len(p) for p in lib.parts)]
+
+
+def _carried(lin: Linearised, signals: list) -> _Carried:
+    """The gyro library's slow signals (temperature, warm-up) carried into the motions' rows: each
+    motion's mean at its gyro samples times the gyro bias's columns; the orientation signals
+    (``f_*``) change within a motion and stay at the rests."""
+    model = lin.model
+    ms, rows = model.motions, lin.rows
+    turn, acc = np.flatnonzero(rows.of("turn")), np.flatnonzero(rows.of("accel_motion"))
+    at = np.r_[turn, acc]
+    motion = np.r_[rows.index[turn], model.accel.motion[rows.index[acc]]] if len(acc) else rows.index[turn]
+    count = np.maximum(np.bincount(ms.motion, minlength=ms.count), 1)
+    X = np.zeros((len(at), len(signals)))
+    for u, (name, x, _) in enumerate(signals):
+        if not name.startswith("f_"):
+            X[:, u] = (np.bincount(ms.motion, x, ms.count) / count)[motion]
+    return _Carried(at, lin.J_g[at, lin.globals.slices["b_g"]], X)
 
 
 def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndarray | None = None,
@@ -99,96 +193,130 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
     """One cell per sensor x regime of the library (all axes) and per output axis. With ``given``
     (N, m) columns already projected off the nominal Jacobian (accepted terms) and the residual
     ``r`` they were selected on, the test is conditional on those terms being fitted too.
-    ``bootstrap``: each p-value is also the wild bootstrap's (``select.wild_p``; the projected
-    library is then formed on every row), as the diagnosis asks of a named finding."""
+    ``bootstrap``: each p-value is also the wild bootstrap's (``select.block_wild_p``), as the
+    diagnosis asks of a named finding. Every statistic is a sum over rows, accumulated over
+    chunks of the library's columns (``_Library.chunks``)."""
     s = Signals(lin)
     unit = unit or {"accel": "m/s^2", "gyro": "rad/s"}
     r = lin.r if r is None else r
+    N = len(r)
     Jr_g, Jr_l = lin.J_g.T @ r, lin.J_l.T @ r  # ~0 at the optimum; kept for exactness
-    if given is not None and given.shape[1]:
+    conditional = given is not None and given.shape[1] > 0
+    if conditional:
         AA_inv = np.linalg.pinv(given.T @ given)
         theta_given = -AA_inv @ (given.T @ r)
         r_after = r + given @ theta_given
+    r_use = r_after if conditional else r
+    lev = lin.leverage if lin.leverage is not None else np.zeros(N)
+    if bootstrap:  # each time block's sums of r-weighted rows: the block scores of the projected columns
+        _, blocks = np.unique(time_blocks(lin), return_inverse=True)
+        Gr = sp.csr_matrix((r_use, (blocks, np.arange(N))), shape=(blocks.max() + 1, N))
+        S_g, S_l = Gr @ lin.J_g, Gr @ lin.J_l
+    rigid = rigid_walks(lin)[0]
     out = []
     for lib in libraries(s):
-        n = len(lib.rows)
-        # d r / d theta on the library's rows: column c moves raw axis i only, so it is the
-        # whitener's column i times the regressor (no (n, 3, k) raw-derivative array)
-        C = np.empty((n, 3, len(lib.columns)))
-        for c, (i, _, x, _) in enumerate(lib.columns):
-            C[:, :, c] = -(lib.W[..., :, i] * x[:, None])
-        C = C.reshape(3 * n, -1)
-        rows = lib.rows.ravel()
-        # the rows of a block are contiguous: a slice is a view of J_g, an index list a copy
-        at = slice(rows[0], rows[-1] + 1) if len(rows) and rows[-1] - rows[0] + 1 == len(rows) and \
-            np.all(np.diff(rows) == 1) else rows
-        JgC, JlC = lin.J_g[at].T @ C, np.asarray(lin.J_l[at].T @ C)
+        k = len(lib.columns)
+        gram, Cr = np.zeros((k, k)), np.zeros(k)
+        JgC, JlC = np.zeros((lin.J_g.shape[1], k)), np.zeros((lin.J_l.shape[1], k))
+        LA = np.zeros((k, given.shape[1])) if conditional else None
+        GB = np.zeros((Gr.shape[0], k)) if bootstrap else None
+        rr = dof = 0.0
+        for rows, C in lib.chunks():
+            gram += C.T @ C
+            JgC += lin.J_g[rows].T @ C
+            JlC += lin.J_l[rows].T @ C
+            Cr += C.T @ r[rows]
+            rr += float(r_use[rows] @ r_use[rows])
+            dof += float(np.sum(1 - lev[rows]))
+            if conditional:
+                LA += C.T @ given[rows]  # = ((I - P)C)' given, as given is already off the Jacobian
+            if bootstrap:
+                GB += Gr[:, rows] @ C
         z_g, z_l = lin.system.solve(JgC, JlC)
         # C'(I - P)C and C'(I - P)r without forming (I - P)C, which would fill every row
-        gram = C.T @ C
         proj = gram - JgC.T @ z_g - JlC.T @ z_l
-        h = C.T @ r[rows] - z_g.T @ Jr_g - z_l.T @ Jr_l
-        r_rows = r[rows]
-        if given is not None and given.shape[1]:
-            LA = C.T @ given[rows]  # = ((I - P)C)' given, as given is already off the Jacobian
+        # what the nominal parameters alone leave visible: the walks held still (the columns are
+        # zero on the walks' rows, so only the system differs)
+        v_g, v_l = rigid.solve(JgC, JlC)
+        visible = gram - JgC.T @ v_g - JlC.T @ v_l
+        h = Cr - z_g.T @ Jr_g - z_l.T @ Jr_l
+        if conditional:
             proj = proj - LA @ AA_inv @ LA.T
             h = h + LA @ theta_given
-            r_rows = r_after[rows]
-        lev = lin.leverage[rows] if lin.leverage is not None else np.zeros(len(rows))
-        scale = max(1.0, float(r_rows @ r_rows) / max(float(np.sum(1 - lev)), 1.0))
-        t_rows = lin.rows.t[rows]
-        boot = None
-        if bootstrap:
-            Cp = -(lin.J_g @ z_g) - lin.J_l @ z_l  # (I - P) C on every row
-            Cp[rows] += C
-            r_boot = r
-            if given is not None and given.shape[1]:
-                Cp -= given @ (AA_inv @ LA.T)
-                r_boot = r_after
-            boot = (Cp, r_boot, time_blocks(lin))
+        scale = max(1.0, rr / max(dof, 1.0))
+        g_b = None
+        if bootstrap:  # block sums of (I - P) C (minus the given terms' share) times r
+            g_b = GB - S_g @ z_g - np.asarray(S_l @ z_l)
+            if conditional:
+                g_b -= (Gr @ given) @ (AA_inv @ LA.T)
+        scored = []
         for axes in [tuple(AXES)] + [(a,) for a in AXES]:
             sel = np.array([AXES[i] in axes for i, *_ in lib.columns])
-            cell = _score(lib, axes, sel, gram, proj, h, scale, C, t_rows, unit[lib.sensor], boot)
+            cell = _score(lib, axes, sel, gram, visible, proj, h, scale, unit[lib.sensor], g_b)
             if cell is not None:
-                out.append(cell)
+                scored.append(cell)
+        out += _with_windows(lin, lib, scored)
     return out
 
 
-def _score(lib: _Library, axes, sel, gram, proj, h, scale, C, t_rows, unit, boot=None) -> StructureCell | None:
+def _score(lib: _Library, axes, sel, gram, visible, proj, h, scale, unit, g_b=None
+           ) -> tuple[StructureCell, np.ndarray] | None:
+    """The cell's score test and its fitted library term ``w`` (k,), raw column coordinates. The
+    directions tested are those the nominal parameters leave ``VISIBLE_MIN`` visible (``visible``:
+    C'(I - P)C with the bias walks held still, as a catalogue term's visible fraction); the test
+    uses the information left with the walks free (``proj``): a slow term the walks could copy
+    is still tested, with the power that leaves (``select``'s candidates do the same)."""
     idx = np.flatnonzero(sel & (np.diag(gram) > 0))
     if not len(idx):
         return None
     d = np.sqrt(np.diag(gram)[idx])
-    A = gram[np.ix_(idx, idx)] / np.outer(d, d)
-    B = proj[np.ix_(idx, idx)] / np.outer(d, d)
+    norm = np.outer(d, d)
+    A, Bv, B = gram[np.ix_(idx, idx)] / norm, visible[np.ix_(idx, idx)] / norm, proj[np.ix_(idx, idx)] / norm
     hn = h[idx] / d
     lam, V = np.linalg.eigh(A)  # an orthonormal basis of the library's span
     keep = lam > 1e-10 * lam.max()
     T = V[:, keep] / np.sqrt(lam[keep])
-    vis, U = np.linalg.eigh(T.T @ B @ T)  # visible fraction of each direction of that span
+    vis, U = np.linalg.eigh(T.T @ Bv @ T)  # visible fraction of each direction of that span
     ok = vis >= VISIBLE_MIN
     if not ok.any():
         return None
-    D = T @ U[:, ok]  # directions (normalised column coordinates) the model cannot make
+    info, E = np.linalg.eigh(U[:, ok].T @ (T.T @ B @ T) @ U[:, ok])  # the same directions, walks free
+    good = info > INFO_MIN
+    if not good.any():
+        return None
+    D = T @ U[:, ok] @ E[:, good]  # directions (normalised column coordinates) tested
     score = D.T @ hn
-    stat = float(np.sum(score ** 2 / vis[ok]))
-    theta = -D @ (score / vis[ok])  # the fitted library term (normalised coordinates)
-    w = np.zeros(C.shape[1])
+    stat = float(np.sum(score ** 2 / info[good]))
+    theta = -D @ (score / info[good])  # the fitted library term (normalised coordinates)
+    w = np.zeros(len(lib.columns))
     w[idx] = theta / d
-    contrib = (C @ w) ** 2  # (no copy of the selected columns)
     # the signals the structure follows: marginal t of each projected column, largest first
     bjj = np.diag(B)
-    shown = bjj >= VISIBLE_MIN  # a column the nominal model absorbs has no t of its own
+    shown = (np.diag(Bv) >= VISIBLE_MIN) & (bjj > INFO_MIN)  # a column the model absorbs has no t of its own
     t = np.where(shown, hn / np.sqrt(np.where(shown, bjj, 1.0)), 0.0)
     terms = []
     for j in [j for j in np.argsort(-np.abs(t)) if shown[j]][:3]:
-        i, name, _, ru = lib.columns[idx[j]]
+        i, name, ru, _ = lib.columns[idx[j]]
         coef = -h[idx[j]] / (bjj[j] * d[j] ** 2)
         terms.append({"output_axis": AXES[i], "signal": name, "coefficient": float(coef),
                       "unit": f"{unit} per {ru}", "t": float(t[j])})
     p_boot = 0.0
-    if boot is not None:
-        Cp, r_boot, groups = boot
-        p_boot = wild_p(Cp[:, idx] @ (D / d[:, None]), r_boot, groups)
-    return StructureCell(lib.sensor, axes, lib.regime, stat / scale, float(ok.sum()),
-                         windows(t_rows, contrib), terms, p_bootstrap=p_boot)
+    if g_b is not None:
+        M = D / d[:, None]  # the tested directions in raw column coordinates
+        p_boot = block_wild_p(g_b[:, idx] @ M, M.T @ proj[np.ix_(idx, idx)] @ M)
+    return StructureCell(lib.sensor, axes, lib.regime, stat / scale, float(good.sum()), [], terms,
+                         p_bootstrap=p_boot), w
+
+
+def _with_windows(lin: Linearised, lib: _Library, scored: list) -> list[StructureCell]:
+    """The cells with the time windows where their fitted terms concentrate (a second pass over
+    the library's chunks)."""
+    if not scored:
+        return []
+    W = np.column_stack([w for _, w in scored])
+    t, contrib = [], []
+    for rows, C in lib.chunks():
+        t.append(lin.rows.t[rows])
+        contrib.append((C @ W) ** 2)
+    t, contrib = np.concatenate(t), np.vstack(contrib)
+    return [dataclasses.replace(cell, windows=windows(t, contrib[:, j])) for j, (cell, _) in enumerate(scored)]

@@ -113,8 +113,9 @@ def fit(model: JointModel, max_iter: int = 30, x_g: np.ndarray | None = None,
     offsets = model.stages.offsets
     local_only = fixed_globals and not leverage
     residuals = (lambda g, l: model.residuals(g, l, with_globals=False)) if local_only else model.residuals
-    x_g, x_l, r, J_g, J_l, it, ok = solve_least_squares(residuals, x_g, x_l, offsets, max_iter=max_iter,
-                                                        tol=tol, fixed_globals=fixed_globals)
+    x_g, x_l, r, J_g, J_l, it, ok = solve_least_squares(
+        residuals, x_g, x_l, offsets, max_iter=max_iter, tol=tol, fixed_globals=fixed_globals,
+        residual=lambda g, l: model.residuals(g, l, jacobian=False)[0])
     if local_only:
         J_g = None
     lin = Linearised(model, x_g, x_l, r, J_g, J_l, it, ok)

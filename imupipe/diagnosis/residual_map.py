@@ -23,6 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pyarrow.compute as pc
 from scipy.stats import chi2 as chi2_dist
 from scipy.stats import norm
 
@@ -58,7 +59,6 @@ class Cell:
     hi: float
     chi2: float
     dof: float
-    rows: np.ndarray  # indices into the row set the cell was built from
     windows: list[tuple[float, float]]
     batch_sd: float = 0.0  # sd of chi2/dof from the spread between time batches (0: too few)
 
@@ -104,6 +104,11 @@ def vectors(table, name: str) -> np.ndarray:
     return col.flatten().to_numpy(zero_copy_only=False).reshape(len(col), -1)
 
 
+def _is(table, name: str, value: str) -> np.ndarray:
+    """(n,) bool: a string column equals ``value`` (compared in Arrow: no Python strings per row)."""
+    return pc.equal(table.column(name), value).to_numpy(zero_copy_only=False)
+
+
 def _gravity_cell(g: np.ndarray) -> np.ndarray:
     """Index into GRAVITY_CELLS of the axis most aligned with gravity (up), per row; -1 unknown."""
     ok = np.all(np.isfinite(g), axis=1)
@@ -125,8 +130,8 @@ def model_rows(ev: Evaluation) -> RowSet:
     regime = np.where(np.isin(name, ["accel_rest", "gyro_rest"]), "static", "motion")
     t = rows.t[idx]
     samples = ev.samples
-    st, ssens = samples.column("t_s").to_numpy(), samples.column("sensor").to_numpy(zero_copy_only=False)
-    acc_rows = ssens == "accel"
+    st = samples.column("t_s").to_numpy()
+    acc_rows = _is(samples, "sensor", "accel")
     s_t = st[acc_rows]
     order = np.argsort(s_t)
 
@@ -154,9 +159,8 @@ def rest_scatter_rows(ev: Evaluation) -> RowSet:
     """Within-rest scatter: each rest sample's whitened residual about its rest's mean (the
     mean is the model rows' business), ``(n_i - 1) / n_i`` degrees of freedom each."""
     s = ev.samples
-    kind = s.column("kind").to_numpy(zero_copy_only=False)
-    keep = kind == "rest"
-    sensor = s.column("sensor").to_numpy(zero_copy_only=False)[keep]
+    keep = _is(s, "kind", "rest")
+    sensor = np.where(_is(s, "sensor", "gyro")[keep], "gyro", "accel")
     seg = s.column("segment").to_numpy()[keep]
     t = s.column("t_s").to_numpy()[keep]
     w = vectors(s, "whitened")[keep]
@@ -224,7 +228,7 @@ def _cells_of(rs: RowSet, sensor: str, axes: tuple[str, ...], regime: str, sel: 
         if dof < MIN_DOF:
             return None
         r2 = rs.r[idx] ** 2
-        return Cell(sensor, axes, regime, variable, lo, hi, float(r2.sum()), dof, idx,
+        return Cell(sensor, axes, regime, variable, lo, hi, float(r2.sum()), dof,
                     windows(rs.t[idx], r2 - rs.w[idx]), _batch_sd(rs.t[idx], r2, rs.w[idx]))
 
     label = "all" if rs.family == "model" else "within-rest scatter"
@@ -307,9 +311,10 @@ def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR, extra: tup
     rows of triads outside the per-sample model (the magnetometer's, ``magnetic``)."""
     from .library import structure_cells  # it builds on select, which builds on this module
 
+    structure = structure_cells(ev.lin)  # first: its working memory is free again for the rows' cells
     model_rs = model_rows(ev)
     noise_rs = rest_scatter_rows(ev)
-    all_cells = cells(model_rs) + cells(noise_rs) + structure_cells(ev.lin)
+    all_cells = cells(model_rs) + cells(noise_rs) + structure
     for rs in extra:
         all_cells += cells(rs)
     p = np.array([c.p_value for c in all_cells])

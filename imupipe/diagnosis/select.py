@@ -219,7 +219,8 @@ class Signals:
 
             m = copy.copy(model)
             m.motions = dataclasses.replace(model.motions, y=model.motions.y + h * d)
-            out[:, j] = -(m.residuals(lin.x_g, lin.x_l)[0] - self.r0) / h  # the term in the prediction: r falls
+            r = m.residuals(lin.x_g, lin.x_l, jacobian=False)[0]
+            out[:, j] = -(r - self.r0) / h  # the term in the prediction: r falls
         return out
 
 
@@ -366,13 +367,19 @@ def wild_p(Cp: np.ndarray, r: np.ndarray, groups: np.ndarray, draws: int = BOOT_
     residual. It keeps the recording's own noise -- correlated within a block, of any size and
     shape -- and needs no noise model; a term that is really there is consistent across blocks
     and stands out of the flipped draws. Deterministic (seeded)."""
-    Binv = np.linalg.pinv(Cp.T @ Cp)
     _, inv = np.unique(groups, return_inverse=True)
     G = inv.max() + 1
     g_b = np.column_stack([np.bincount(inv, Cp[:, j] * r, G) for j in range(Cp.shape[1])])  # (G, k)
+    return block_wild_p(g_b, Cp.T @ Cp, draws)
+
+
+def block_wild_p(g_b: np.ndarray, B: np.ndarray, draws: int = BOOT_DRAWS) -> float:
+    """``wild_p`` from each block's score ``g_b`` (G, k), the sum over its rows of ``Cp * r``,
+    and the term's information ``B = Cp' Cp`` (k, k)."""
+    Binv = np.linalg.pinv(B)
     g = g_b.sum(0)
     T = float(g @ Binv @ g)
-    signs = np.random.default_rng(0).choice([-1.0, 1.0], (draws, G))
+    signs = np.random.default_rng(0).choice([-1.0, 1.0], (draws, len(g_b)))
     gs = signs @ g_b
     T_star = np.einsum("dk,kl,dl->d", gs, Binv, gs)
     return float((1 + np.sum(T_star >= T)) / (draws + 1))
@@ -474,17 +481,18 @@ def _earth_or_g(accepted: list[Finding], pool: list[Tested], stat, n_rows: int) 
                                                 p_asymptotic=pa_e)
 
 
-def raw_units(lin: Linearised, r: np.ndarray) -> dict[str, np.ndarray]:
-    """Un-whitened residual rows per sensor (accel rest + motion, gyro rest), sensor units,
-    with each row's group id (rest ``i`` -> i, motion sample of motion ``j`` -> n + j)."""
+def raw_units(lin: Linearised, r: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per sensor: its residual rows (accel rest + motion, gyro rest) un-whitened, in sensor
+    units; each row's group id (rest ``i`` -> i, motion sample of motion ``j`` -> n + j); and
+    the same rows whitened."""
     model = lin.model
     out = {}
     ra, rg, rm = _rows3(lin, "accel_rest"), _rows3(lin, "gyro_rest"), _rows3(lin, "accel_motion")
     n = model.n
     e_a = np.linalg.solve(model.W_a, r[ra][:, :, None])[:, :, 0]
     e_m = np.linalg.solve(model.W_sample, r[rm].T).T if len(rm) else np.zeros((0, 3))
-    out["accel"] = (np.vstack([e_a, e_m]), np.r_[np.arange(n), n + model.accel.motion])
-    out["gyro"] = (np.linalg.solve(model.W_g, r[rg][:, :, None])[:, :, 0], np.arange(n))
+    out["accel"] = (np.vstack([e_a, e_m]), np.r_[np.arange(n), n + model.accel.motion], np.vstack([r[ra], r[rm]]))
+    out["gyro"] = (np.linalg.solve(model.W_g, r[rg][:, :, None])[:, :, 0], np.arange(n), r[rg])
     return out
 
 
@@ -567,18 +575,19 @@ def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Find
 def _sensor_rms(lin: Linearised, finding: Finding, before: np.ndarray, after: np.ndarray
                 ) -> tuple[float, float, float]:
     """Held-out RMS of the finding's sensor rows without and with the term, and the z-score of
-    the improvement: the squared error's decrease summed per rest and per motion, its mean over
-    them against its standard error (paired; positive: the term predicts better)."""
+    the improvement: the whitened squared error's decrease (the model's own weights: a precise
+    rest mean counts for more than a noisy motion sample) summed per rest and per motion, its
+    mean over them against its standard error (paired; positive: the term predicts better)."""
     sensor = finding.tested.candidate.sensor
     rows = np.any(finding.tested.candidate.columns != 0, axis=1)
-    e0, group = raw_units(lin, np.where(rows, before, 0))[sensor]
-    e1, _ = raw_units(lin, np.where(rows, after, 0))[sensor]
+    e0, group, w0 = raw_units(lin, np.where(rows, before, 0))[sensor]
+    e1, _, w1 = raw_units(lin, np.where(rows, after, 0))[sensor]
     used = np.any(e0 != 0, axis=1)
     if not used.any():
         return float("nan"), float("nan"), float("nan")
     rms = lambda e: float(np.sqrt(np.mean(e[used] ** 2)))  # noqa: E731
     ids, where = np.unique(group[used], return_inverse=True)
-    d = np.bincount(where, (e0[used] ** 2 - e1[used] ** 2).sum(axis=1))
+    d = np.bincount(where, (w0[used] ** 2 - w1[used] ** 2).sum(axis=1))
     sd = float(np.std(d, ddof=1)) if len(d) > 1 else 0.0
     z = float(np.mean(d) / (sd / np.sqrt(len(d)))) if sd > 0 else 0.0
     return rms(e0), rms(e1), z

@@ -34,7 +34,7 @@ from pyarrow import ipc
 
 from .. import __version__
 from ..errors import ImupipeError
-from ..io import arrow_bytes, file_digest, table_digest, write_bytes, write_text
+from ..io import file_digest, table_digest, write_arrow_hashed, write_text
 from ..plugins import Registry
 from .dag import Node
 
@@ -304,9 +304,8 @@ class Cache:
             }
             meta = dict(table.schema.metadata or {})
             meta[PROVENANCE_KEY] = canonical(provenance).encode()
-            data = arrow_bytes(table.replace_schema_metadata(meta))
-            files[port] = {"size": len(data), "sha256": hashlib.sha256(data).hexdigest()}
-            write_bytes(self._dir(key) / f"{port}.arrow", data)
+            size, sha256 = write_arrow_hashed(self._dir(key) / f"{port}.arrow", table.replace_schema_metadata(meta))
+            files[port] = {"size": size, "sha256": sha256}
         write_text(
             self._dir(key) / "outputs.json",
             json.dumps(

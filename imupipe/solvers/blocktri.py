@@ -267,17 +267,22 @@ class Bordered:
 
 
 def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np.ndarray,
-                        max_iter: int = 30, tol: float = 1e-10, fixed_globals: bool = False):
+                        max_iter: int = 30, tol: float = 1e-10, fixed_globals: bool = False, residual=None):
     """Levenberg-Marquardt on ``residuals(x_g, x_l) -> (r, J_g, J_l)``.
 
     Returns ``(x_g, x_l, r, J_g, J_l, iterations, converged)`` at the optimum. Converged when
     the relative decrease of the cost falls below ``tol``; then one undamped Gauss-Newton step
     polishes the solution (the damping would otherwise leave it ~1e-8 short). ``fixed_globals``:
-    only the locals move; ``J_g`` is still returned at the optimum.
+    only the locals move; ``J_g`` is still returned at the optimum. ``residual(x_g, x_l) -> r``
+    (optional) judges the trial points: the Jacobians are then formed only where a step is
+    taken, after the old ones are freed (one set in memory, not two).
     """
     def step(J_g: np.ndarray, J_l: sp.csr_matrix, r: np.ndarray, lam: float) -> tuple[np.ndarray, np.ndarray]:
         d_g, d_l = Bordered(J_g[:, :0] if fixed_globals else J_g, J_l, offsets, damping=lam).step(r)
         return (np.zeros(len(x_g)) if fixed_globals else d_g), d_l
+
+    def trial(g: np.ndarray, l: np.ndarray) -> tuple:
+        return residuals(g, l) if residual is None else (residual(g, l), None, None)
 
     r, J_g, J_l = residuals(x_g, x_l)
     cost = float(r @ r)
@@ -288,7 +293,7 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
         d_g, d_l = step(J_g, J_l, r, lam)
         while True:
             cand_g, cand_l = x_g + d_g, x_l + d_l
-            r2, J_g2, J_l2 = residuals(cand_g, cand_l)
+            r2, J_g2, J_l2 = trial(cand_g, cand_l)
             cost2 = float(r2 @ r2)
             if np.isfinite(cost2) and cost2 <= cost:
                 break
@@ -298,14 +303,22 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
                 return x_g, x_l, r, J_g, J_l, it, converged
             d_g, d_l = step(J_g, J_l, r, lam)
         decrease = (cost - cost2) / max(cost, 1e-300)
-        x_g, x_l, r, J_g, J_l, cost = cand_g, cand_l, r2, J_g2, J_l2, cost2
+        x_g, x_l, cost = cand_g, cand_l, cost2
+        if J_g2 is None:
+            J_g = J_l = None
+            J_g2, J_l2 = residuals(x_g, x_l)[1:]
+        r, J_g, J_l = r2, J_g2, J_l2
         lam = max(lam / 10.0, 1e-12)
         if decrease < tol:
             converged = True
             break
     if converged:  # an undamped Gauss-Newton step lands on the optimum (quadratic convergence)
         d_g, d_l = step(J_g, J_l, r, 0.0)
-        r2, J_g2, J_l2 = residuals(x_g + d_g, x_l + d_l)
+        r2, J_g2, J_l2 = trial(x_g + d_g, x_l + d_l)
         if np.isfinite(r2 @ r2) and float(r2 @ r2) <= cost:
-            x_g, x_l, r, J_g, J_l = x_g + d_g, x_l + d_l, r2, J_g2, J_l2
+            x_g, x_l, r = x_g + d_g, x_l + d_l, r2
+            if J_g2 is None:
+                J_g = J_l = None
+                J_g2, J_l2 = residuals(x_g, x_l)[1:]
+            J_g, J_l = J_g2, J_l2
     return x_g, x_l, r, J_g, J_l, it, converged

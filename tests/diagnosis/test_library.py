@@ -1,0 +1,79 @@
+"""The structure cells' statistics, accumulated over chunks of the library's columns, are the
+dense formulas': the score of the projected columns (conditional on given terms) and its wild
+bootstrap; the gyro's slow signals carried into the motions match their exact column."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from imupipe.diagnosis import library
+from imupipe.diagnosis.select import Signals, time_blocks, wild_p
+
+
+def _dense(lin, lib) -> np.ndarray:
+    C = np.zeros((len(lin.r), len(lib.columns)))
+    for rows, c in lib.chunks():
+        C[rows] += c
+    return C
+
+
+def _cases(lin):
+    rng = np.random.default_rng(1)
+    r = lin.r + 0.01 * rng.standard_normal(len(lin.r))  # off the optimum: every term of the score counts
+    return [(None, lin.r), (lin.project(rng.standard_normal((len(r), 2)))[0], r)]
+
+
+def test_chunks_change_nothing(fitted, monkeypatch):
+    lin = fitted[-1]
+    for given, r in _cases(lin):
+        whole = library.structure_cells(lin, given, r, bootstrap=True)
+        monkeypatch.setattr(library, "CHUNK", 37)  # many chunks, the last one short
+        chunked = library.structure_cells(lin, given, r, bootstrap=True)
+        monkeypatch.undo()
+        assert len(whole) == len(chunked) > 0
+        for a, b in zip(whole, chunked):
+            assert (a.sensor, a.regime, a.axes, a.dof, a.windows) == (b.sensor, b.regime, b.axes, b.dof, b.windows)
+            assert b.chi2 == pytest.approx(a.chi2, rel=1e-9) and b.p_bootstrap == a.p_bootstrap
+
+
+def test_a_fully_visible_cell_is_the_dense_score_test_and_its_bootstrap(fitted):
+    lin = fitted[-1]
+    libs = library.libraries(Signals(lin))
+    checked = 0
+    for given, r in _cases(lin):
+        cells = library.structure_cells(lin, given, r, bootstrap=True)
+        for lib in libs:
+            C = _dense(lin, lib)
+            rows = np.any(C != 0, axis=1)
+            for cell in (c for c in cells if (c.sensor, c.regime) == (lib.sensor, lib.regime)):
+                sel = [library.AXES[i] in cell.axes for i, *_ in lib.columns]
+                X = lin.project(C[:, sel])[0]
+                rr = r
+                if given is not None:  # the given terms fitted too
+                    X = X - given @ np.linalg.lstsq(given, X, rcond=None)[0]
+                    rr = r - given @ np.linalg.lstsq(given, r, rcond=None)[0]
+                if cell.dof != np.linalg.matrix_rank(X):  # some direction dropped as not visible
+                    continue
+                scale = max(1.0, float(rr[rows] @ rr[rows]) / float(np.sum(1 - lin.leverage[rows])))
+                score = X.T @ rr
+                assert cell.chi2 == pytest.approx(score @ np.linalg.solve(X.T @ X, score) / scale, rel=1e-6)
+                assert cell.p_bootstrap == pytest.approx(wild_p(X, rr, time_blocks(lin)), abs=1e-12)
+                checked += 1
+    assert checked >= 4
+
+
+def test_the_gyro_slow_signals_reach_the_motions_as_the_exact_column_does(fitted):
+    lin = fitted[-1]
+    s = Signals(lin)
+    (lib,) = [lb for lb in library.libraries(s) if lb.sensor == "gyro"]
+    C = _dense(lin, lib)
+    motion = lin.rows.of("turn") | lin.rows.of("accel_motion")
+    for c, (i, name, _, _) in enumerate(lib.columns):
+        if name != "dT^2":
+            continue
+        dy = np.zeros((len(s.model.motions.t), 3, 1))
+        dy[:, i, 0] = s.model.dT_gyro ** 2
+        exact = s.gyro_motion_column(dy)[:, 0]
+        assert np.linalg.norm(exact[motion]) > 0
+        assert np.linalg.norm(C[motion, c] - exact[motion]) < 0.05 * np.linalg.norm(exact[motion])
