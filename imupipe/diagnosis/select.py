@@ -50,6 +50,7 @@ from ..effects.earth_rotation import EARTH_RATE
 from ..errors import SolverError
 from ..models import T_REF_C
 from ..rotations import skew
+from ..temperature import SMOOTH_S
 from ..solvers.blocktri import Bordered
 from .linearised import Linearised
 from .residual_map import benjamini_hochberg
@@ -64,12 +65,12 @@ NONCENTRALITY_80 = 7.85  # chi2_1 noncentrality for 80 % power at alpha = 0.05
 BLOCK_S = 5.0  # time blocks of the wild bootstrap (rows within a block keep their signs together)
 BOOT_DRAWS = 999
 RIGID = 1e3  # weight on the walks' increments when the visible fraction is measured (q / 1e6)
+RATE_S = SMOOTH_S  # s: the temperature's rate is its slope over this span (or a longer rest)
+LAG_MIN_S = SMOOTH_S  # s: a shorter fitted thermal lag is the read-out's quantisation
 GYRO_STEP = 1e-7  # rad/s: the largest perturbation of a gyro sample when differencing a term's column
 UNTESTED = {
-    "gyro_scale_asymmetry": "acts through the attitude integration inside motions (not in the score model yet)",
-    "gyro_saturation": "acts through the attitude integration inside motions (not in the score model yet)",
-    "gyro_scale_temperature": "acts through the attitude integration inside motions (not in the score model yet)",
-    "thermal_lag": "needs a profiled lag of the temperature stream (not in the score model yet)",
+    "gyro_saturation": "not a term to fit: clipped gyro samples sit on the rails of the full scale; the "
+                       "motions holding them are left out of the fits and reported as saturation events",
     "mag_current_interference": "the magnetometer is mapped (rest magnitude and dip, within-rest scatter) "
                                 "but has no score model yet: a flagged magnetometer cell is reported as unknown",
     "mag_field_gradient": "the magnetometer is mapped (rest magnitude and dip, within-rest scatter) "
@@ -85,6 +86,11 @@ REVEAL = {
     "gyro_g_sensitivity": "long rests at many orientations (each axis up and down)",
     "earth_rotation": "long rests at many orientations; the latitude known (it fixes the vertical rate)",
     "warmup_transient": "a cold start with rests in the first minutes after power-on",
+    "gyro_scale_temperature": "large rotations about every axis repeated across a wide temperature range",
+    "gyro_scale_asymmetry": "large rotations about every axis, each in one sense only (not undone by its "
+                            "reverse about the same axis)",
+    "thermal_lag": "a temperature that changes at different rates or reverses (a cool-down, a hot restart) "
+                   "with rests throughout; the bias temperature coefficients known",
 }
 
 
@@ -101,6 +107,7 @@ class Candidate:
     to_params: object
     extra_dof: int = 0  # profiled nonlinear parameters (tau): tested over a grid
     fixed: dict = field(default_factory=dict)
+    rejects: object = None  # theta -> why these parameters are not the effect (None: they may be)
 
 
 @dataclass
@@ -160,10 +167,15 @@ class Signals:
                 lam = np.clip((ms.t[sel] - ms.origin[j]) / span, 0, 1)[:, None]
                 u_g[sel] = (1 - lam) * u[model.p[j]] + lam * u[model.qr[j]]
         self.f_gyro_motion = g * u_g / np.maximum(np.linalg.norm(u_g, axis=1, keepdims=True), 1e-12)
+        omega, _ = model._rates(P, lin.x_l, derivatives=False)  # (N_g, 3) calibrated, model frame
+        self.x_gyro_motion = omega @ np.linalg.inv(P["M_g"]).T  # the same in the gyro's axes (sensed)
+        self.k = {"accel": P["k_a"], "gyro": P["k_g"]}
+        t_last = max(model.rests.t_end_s[-1], ms.t[-1] if len(ms.t) else -np.inf)
+        self.T_rate_rest = temperature_rate(model, model.mid, np.maximum(model.length, RATE_S), t_first, t_last)
+        self.T_rate_motion = temperature_rate(model, acc.t, RATE_S, t_first, t_last)
+        self.T_rate_gyro_motion = temperature_rate(model, ms.t, RATE_S, t_first, t_last)
         if self.has_motion:
             self.f_motion = g * sig["gravity_motion"]
-            omega, _ = model._rates(P, lin.x_l, derivatives=False)
-            ms = model.motions
             self.omega = np.zeros((len(acc.t), 3))
             self.alpha = np.zeros((len(acc.t), 3))
             self.f_dot = np.zeros((len(acc.t), 3))
@@ -223,6 +235,19 @@ class Signals:
         return out
 
 
+def temperature_rate(model, t: np.ndarray, span_s: np.ndarray | float, t_first: float, t_last: float
+                     ) -> np.ndarray:
+    """(n,) degC/s: the model's (de-quantised) temperature differenced over ``span_s`` centred on
+    ``t`` (n,) s, the span cut to the recording [``t_first``, ``t_last``]: the slope of the read-out
+    over a stretch longer than its smoother, so its steps do not show."""
+    t = np.asarray(t, float)
+    lo = np.clip(t - 0.5 * np.asarray(span_s), t_first, t_last)
+    hi = np.clip(t + 0.5 * np.asarray(span_s), t_first, t_last)
+    width = hi - lo
+    return np.divide(model.temperature_at(hi) - model.temperature_at(lo), width, out=np.zeros(len(t)),
+                     where=width > 0)
+
+
 def _derivative(y: np.ndarray, t: np.ndarray, span_s: float = 0.1) -> np.ndarray:
     """d y / d t by a local cubic over ``span_s`` (Savitzky-Golay): differentiating raw noisy
     samples would put noise into the regressors and shrink the fitted term (errors in variables)."""
@@ -277,6 +302,25 @@ def candidates(lin: Linearised, frame: np.ndarray, registry) -> list[Candidate]:
         C = s.gyro_term(lambda at: eff["gyro_g_sensitivity"].regressors({"f": f_at[at]}))
         out.append(Candidate("gyro_g_sensitivity", "gyro", "static", [f"G{i}{j}" for i in range(3) for j in range(3)],
                              C, lambda th: {"G": (th.reshape(3, 3) @ Q).tolist()}))
+    # the gyro's scale terms act on the rate it senses: none at rest, the motions' through the attitude
+    x_gyro = {"rest": np.zeros_like(s.f_rest), "gyro_motion": s.x_gyro_motion}
+    if "gyro_scale_temperature" in eff:
+        C = s.gyro_term(lambda at: eff["gyro_scale_temperature"].regressors({"x": x_gyro[at], "T": T_at[at]}))
+        out.append(Candidate("gyro_scale_temperature", "gyro", "motion", ["ppm_x", "ppm_y", "ppm_z"], C,
+                             lambda th: {"ppm_per_C": list(th)}))
+    if "gyro_scale_asymmetry" in eff:
+        C = s.gyro_term(lambda at: eff["gyro_scale_asymmetry"].regressors({"x": x_gyro[at]}))
+        out.append(Candidate("gyro_scale_asymmetry", "gyro", "motion", ["eps_x", "eps_y", "eps_z"], C,
+                             lambda th: {"eps": list(th)}))
+    if "thermal_lag" in eff:
+        # the biases follow the die, k (T_die - 25), the model the read-out: both triads read
+        # k tau dT_read/dt more (one tau); named after the triad that carries more of it
+        rate_at = {"rest": s.T_rate_rest, "motion": s.T_rate_motion, "gyro_motion": s.T_rate_gyro_motion}
+        parts = {sensor: term(sensor, lambda at, sensor=sensor: eff["thermal_lag"].regressors(
+            {"k": s.k[sensor], "T_rate": rate_at[at]})) for sensor in ("accel", "gyro")}
+        sensor = max(parts, key=lambda x: float(np.linalg.norm(parts[x])))
+        out.append(Candidate("thermal_lag", sensor, "static", ["tau_s"], parts["accel"] + parts["gyro"],
+                             lambda th: {"tau_s": float(th[0])}, rejects=_lag_too_short))
     if "earth_rotation" in eff:
         # at rest Earth's rate has a vertical part along gravity (Omega sin(lat), the same in every
         # rest: an isotropic g-sensitivity G = (Omega sin(lat) / g) I) and a horizontal part that
@@ -299,6 +343,16 @@ def candidates(lin: Linearised, frame: np.ndarray, registry) -> list[Candidate]:
                                                                          "sensor": sensor},
                                      extra_dof=len(WARMUP_TAUS_S), fixed={"tau_s": tau}))
     return [c for c in out if np.any(c.columns)]
+
+
+def _lag_too_short(th: np.ndarray) -> str | None:
+    """Why a fitted lag is not the die's: shorter than the temperature smoother, it is what the
+    read-out's steps leave in the de-quantised temperature (memo E15), and a negative one is a lead."""
+    tau = float(th[0])
+    if tau < LAG_MIN_S:
+        return (f"a thermal lag of {tau:.3g} s is below the temperature smoother's {LAG_MIN_S:g} s: "
+                "the read-out's quantisation, not the die lagging its sensor")
+    return None
 
 
 def _latitude(th: np.ndarray) -> dict:
