@@ -48,27 +48,41 @@ def effect_params(effect: str, a: float) -> dict:
         "gyro_g_sensitivity": lambda: {"G": (a * G_DIR).tolist()},
         "bias_temperature_nonlinear": lambda: {"k2_per_C2": list(a * UNIT), "sensor": "gyro"},
         "earth_rotation": lambda: {"latitude_deg": float(np.degrees(np.arcsin(min(a / EARTH_RATE, 1.0))))},
+        "gyro_scale_temperature": lambda: {"ppm_per_C": list(a * UNIT)},
+        "gyro_scale_asymmetry": lambda: {"eps": list(a * UNIT)},
+        "thermal_lag": lambda: {"tau_s": a},
+        "warmup_transient": lambda: {"amp": list(a * UNIT), "tau_s": WARMUP_TAU_S, "sensor": "gyro"},
     }[effect]()
 
 
 def fitted_size(effect: str, params: dict) -> float:
-    if effect == "accel_gyro_time_offset":
-        return float(params["dt_s"])
+    if effect in ("accel_gyro_time_offset", "thermal_lag"):
+        return float(params["dt_s" if effect == "accel_gyro_time_offset" else "tau_s"])
     if effect == "gyro_g_sensitivity":
         return float(np.sum(np.asarray(params["G"]) * G_DIR))
     if effect == "earth_rotation":  # the vertical rate Omega sin(lat)
         return EARTH_RATE * float(np.sin(np.radians(params["latitude_deg"])))
     key = {"lever_arm": "r_m", "accel_nonlinearity": "k2", "accel_scale_temperature": "ppm_per_C",
-           "bias_temperature_nonlinear": "k2_per_C2"}[effect]
+           "bias_temperature_nonlinear": "k2_per_C2", "gyro_scale_temperature": "ppm_per_C",
+           "gyro_scale_asymmetry": "eps", "warmup_transient": "amp"}[effect]
     return float(np.asarray(params[key]) @ UNIT)
 
 
-SENSOR = {"gyro_g_sensitivity": "gyro", "bias_temperature_nonlinear": "gyro", "earth_rotation": "gyro"}
+SENSOR = {"gyro_g_sensitivity": "gyro", "bias_temperature_nonlinear": "gyro", "earth_rotation": "gyro",
+          "gyro_scale_temperature": "gyro", "gyro_scale_asymmetry": "gyro", "warmup_transient": "gyro",
+          "thermal_lag": None}  # None: either triad (one lag for both, named after the one carrying more)
+MOTION = ("lever_arm", "accel_gyro_time_offset", "gyro_scale_temperature", "gyro_scale_asymmetry")
+WARMUP_TAU_S = 120.0  # the injected warm-up transient's time constant (one of select.WARMUP_TAUS_S)
+
+
+def sensor_of(effect: str, sensor: str) -> bool:
+    """Whether a tested or named ``sensor`` is the bench's for ``effect``."""
+    return SENSOR.get(effect, "accel") in (None, sensor)
 
 
 def direction(effect: str) -> np.ndarray:
     """The unit direction of ``effect_params`` in the term's parameters (the information's axes)."""
-    if effect in ("accel_gyro_time_offset", "earth_rotation"):
+    if effect in ("accel_gyro_time_offset", "earth_rotation", "thermal_lag"):
         return np.ones(1)
     if effect == "gyro_g_sensitivity":
         return G_DIR.ravel()
@@ -99,14 +113,15 @@ def one_seed(args: tuple[str, int, list[str], float, str]) -> dict:
     mde = {}
     for t in null["tested"]:
         e = t["effect"]
-        if e in effects and t["visible_fraction"] >= VISIBLE_MIN and t["sensor"] == SENSOR.get(e, "accel"):
+        if e in effects and t["visible_fraction"] >= VISIBLE_MIN and sensor_of(e, t["sensor"]) \
+                and t.get("tau_s", WARMUP_TAU_S) == WARMUP_TAU_S:
             d = direction(e)
             lam = d @ np.asarray(t["information"]) @ d
             mde[e] = min(mde.get(e, np.inf), float(np.sqrt(NONCENTRALITY_80 / lam)) if lam > 0 else np.inf)
     runs = []
     for e in effects:
         if e not in mde or not np.isfinite(mde[e]):
-            why = [n for n in null["not_identifiable"] if n["effect"] == e and n["sensor"] == SENSOR.get(e, "accel")]
+            why = [n for n in null["not_identifiable"] if n["effect"] == e and sensor_of(e, n["sensor"])]
             runs.append({"effect": e, "skipped": "not identifiable on this protocol" + (
                 f" (visible {why[0]['visible_fraction']:.1%}, absorbed by {', '.join(why[0]['biases'])}; "
                 f"reveal with {why[0]['reveal_with']})" if why else "")})
@@ -119,12 +134,11 @@ def one_seed(args: tuple[str, int, list[str], float, str]) -> dict:
             continue
         named = [f for f in doc["findings"] if f["effect"] == e]
         top = doc["top_cell"]
-        regime = "motion" if e in ("lever_arm", "accel_gyro_time_offset") else "static"
+        regime = "motion" if e in MOTION else "warmup" if e == "warmup_transient" else "static"
         runs.append({
             "effect": e, "size": a, "named": bool(named),
             "wrong": [f["effect"] for f in doc["findings"] if f["effect"] not in (e, "unknown")],
-            "top_cell_right": bool(top and top["sensor"] == SENSOR.get(e, "accel")
-                                   and top["regime"] in (regime, "all")),
+            "top_cell_right": bool(top and sensor_of(e, top["sensor"]) and top["regime"] in (regime, "all")),
             "top_cell": top and f"{top['sensor']}/{top['regime']}/{top['variable']}/{'-'.join(top['axes'])}",
             "fitted_over_true": fitted_size(e, named[0]["parameters"]) / a if named else None,
             "heldout_ratio": (named[0]["heldout_rms_after"] / named[0]["heldout_rms_before"]) if named else None,
@@ -171,7 +185,9 @@ def main() -> None:
     ap.add_argument("--protocols", nargs="+", default=["gimbal", "standard"])
     ap.add_argument("--effects", nargs="+", default=["lever_arm", "accel_gyro_time_offset", "accel_nonlinearity",
                                                      "accel_scale_temperature", "gyro_g_sensitivity",
-                                                     "bias_temperature_nonlinear", "earth_rotation"])
+                                                     "bias_temperature_nonlinear", "earth_rotation",
+                                                     "gyro_scale_temperature", "gyro_scale_asymmetry", "thermal_lag",
+                                                     "warmup_transient"])
     ap.add_argument("--factor", type=float, default=5.0)
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--out", type=Path, default=None)
