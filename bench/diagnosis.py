@@ -13,6 +13,11 @@ per protocol and effect: how often the diagnosis names it (target >= 90 %), how 
 residual map's top-ranked cell names its sensor and regime, the fitted size over the true
 one, the held-out RMS ratio after/before; and for the nulls how often anything is reported
 (target: at most 5 %).
+
+The thermal lag is injected at no less than ``LAG_S`` (four times the temperature smoother's
+scale: shorter lags are rejected as read-out artefacts), and at that size where the null says it
+cannot be seen: in a first-order warm-up the read-out's rate is affine in its temperature, so the
+null's column is absorbed, while a real lag shows as its own start-up after power-on.
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from imupipe.diagnosis.select import NONCENTRALITY_80, VISIBLE_MIN
+from imupipe.diagnosis.select import LAG_MIN_S, NONCENTRALITY_80, VISIBLE_MIN
 from imupipe.effects.earth_rotation import EARTH_RATE
 from imupipe.pipeline.api import run_sessions
 from imupipe.sim.api import simulate
@@ -73,6 +78,7 @@ SENSOR = {"gyro_g_sensitivity": "gyro", "bias_temperature_nonlinear": "gyro", "e
           "thermal_lag": None}  # None: either triad (one lag for both, named after the one carrying more)
 MOTION = ("lever_arm", "accel_gyro_time_offset", "gyro_scale_temperature", "gyro_scale_asymmetry")
 WARMUP_TAU_S = 120.0  # the injected warm-up transient's time constant (one of select.WARMUP_TAUS_S)
+LAG_S = 4 * LAG_MIN_S  # the thermal lag's smallest injected size (shorter ones are read-out artefacts)
 
 
 def sensor_of(effect: str, sensor: str) -> bool:
@@ -120,13 +126,15 @@ def one_seed(args: tuple[str, int, list[str], float, str]) -> dict:
             mde[e] = min(mde.get(e, np.inf), float(np.sqrt(NONCENTRALITY_80 / lam)) if lam > 0 else np.inf)
     runs = []
     for e in effects:
+        if e == "thermal_lag" and not np.isfinite(mde.get(e, np.inf)):
+            mde[e] = LAG_S / factor  # seen by its own start-up, not on the null: a size it can be named at
         if e not in mde or not np.isfinite(mde[e]):
             why = [n for n in null["not_identifiable"] if n["effect"] == e and sensor_of(e, n["sensor"])]
             runs.append({"effect": e, "skipped": "not identifiable on this protocol" + (
                 f" (visible {why[0]['visible_fraction']:.1%}, absorbed by {', '.join(why[0]['biases'])}; "
                 f"reveal with {why[0]['reveal_with']})" if why else "")})
             continue
-        a = factor * mde[e]
+        a = max(factor * mde[e], LAG_S) if e == "thermal_lag" else factor * mde[e]
         try:
             doc = diagnose(protocol, seed, {e: effect_params(e, a)}, folder)
         except Exception as exc:  # noqa: BLE001

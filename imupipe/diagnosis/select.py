@@ -30,9 +30,16 @@ the nuisances' Jacobian, through the fit's own block-tridiagonal system), so
 
 A p-value is the larger of the asymptotic (chi-square) one and a wild bootstrap's over 5-s
 time blocks (``wild_p``: the recording's own noise, whatever its colour, without a noise
-model); ``bench/diagnosis.py`` measures how often nulls produce a finding. Effects whose terms act through the attitude integration (gyro scale
-asymmetry, saturation, g-sensitivity in motion), the magnetometer and the thermal lag are not
-tested here yet: ``untested`` lists them with the reason.
+model); ``bench/diagnosis.py`` measures how often nulls produce a finding.
+
+The gyro's scale terms (temperature, asymmetry) act on the rate it senses, so only inside
+motions, through the attitude: most of their evidence is the attitude path's rows, and they are
+held out by whole motions with those rows, judged whitened. The thermal lag is one ``tau`` for
+both triads along their ``k``, from the slope of a spline through the de-quantised read-out;
+a fitted lag below the temperature smoother's scale is the read-out's quantisation
+(``rejects``: not confirmed). Saturation is not a term: clipped samples are events
+(``events.clipped``) and their motions are left out. The magnetometer's effects are not tested
+here yet: ``UNTESTED`` lists them with the reason.
 """
 
 from __future__ import annotations
