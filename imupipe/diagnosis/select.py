@@ -356,7 +356,7 @@ def candidates(lin: Linearised, frame: np.ndarray, registry) -> list[Candidate]:
         C = parts["accel"] + parts["gyro"]
         tau_of = _lag_of(lin, C, sensor)
         out.append(Candidate("thermal_lag", sensor, "static", ["tau_s"], C, lambda th: {"tau_s": tau_of(th)},
-                             rejects=lambda th: _lag_too_short(tau_of(th))))
+                             rejects=lambda th: _not_a_lag(tau_of(th))))
     if "earth_rotation" in eff:
         # at rest Earth's rate has a vertical part along gravity (Omega sin(lat), the same in every
         # rest: an isotropic g-sensitivity G = (Omega sin(lat) / g) I) and a horizontal part that
@@ -399,9 +399,11 @@ def _lag_of(lin: Linearised, C: np.ndarray, sensor: str):
     return tau
 
 
-def _lag_too_short(tau: float) -> str | None:
+def _not_a_lag(tau: float) -> str | None:
     """Why a fitted lag is not the die's: shorter than the temperature smoother, it is what the
     read-out's steps leave in the de-quantised temperature (memo E15), and a negative one is a lead."""
+    if tau < 0:
+        return f"a thermal lag of {tau:.3g} s would be the read-out leading the die, not lagging it"
     if tau < LAG_MIN_S:
         return (f"a thermal lag of {tau:.3g} s is below the temperature smoother's {LAG_MIN_S:g} s: "
                 "the read-out's quantisation, not the die lagging its sensor")
