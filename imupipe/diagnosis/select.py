@@ -58,8 +58,8 @@ from ..effects.earth_rotation import EARTH_RATE
 from ..errors import SolverError
 from ..models import T_REF_C
 from ..rotations import skew
-from ..temperature import SMOOTH_S
 from ..solvers.blocktri import Bordered
+from ..temperature import SMOOTH_S
 from .linearised import Linearised
 from .residual_map import benjamini_hochberg
 
