@@ -126,15 +126,14 @@ def one_seed(args: tuple[str, int, list[str], float, str]) -> dict:
             mde[e] = min(mde.get(e, np.inf), float(np.sqrt(NONCENTRALITY_80 / lam)) if lam > 0 else np.inf)
     runs = []
     for e in effects:
-        if e == "thermal_lag" and not np.isfinite(mde.get(e, np.inf)):
-            mde[e] = LAG_S / factor  # seen by its own start-up, not on the null: a size it can be named at
-        if e not in mde or not np.isfinite(mde[e]):
+        unseen_lag = e == "thermal_lag" and not np.isfinite(mde.get(e, np.inf))  # seen by its own start-up
+        if not unseen_lag and (e not in mde or not np.isfinite(mde[e])):
             why = [n for n in null["not_identifiable"] if n["effect"] == e and sensor_of(e, n["sensor"])]
             runs.append({"effect": e, "skipped": "not identifiable on this protocol" + (
                 f" (visible {why[0]['visible_fraction']:.1%}, absorbed by {', '.join(why[0]['biases'])}; "
                 f"reveal with {why[0]['reveal_with']})" if why else "")})
             continue
-        a = max(factor * mde[e], LAG_S) if e == "thermal_lag" else factor * mde[e]
+        a = max(factor * mde.get(e, 0.0), LAG_S) if e == "thermal_lag" else factor * mde[e]
         try:
             doc = diagnose(protocol, seed, {e: effect_params(e, a)}, folder)
         except Exception as exc:  # noqa: BLE001
@@ -177,7 +176,7 @@ def report(results: list[dict], factor: float) -> None:
                 continue
             fo = [x["fitted_over_true"] for x in xs if x["fitted_over_true"] is not None]
             ho = [x["heldout_ratio"] for x in xs if x["heldout_ratio"] is not None]
-            mde = np.median([r["mde"][e] for r in rs if e in r["mde"]])
+            mde = np.median([r["mde"][e] for r in rs if e in r["mde"]] or [np.nan])
             print(f"{proto:<10}{e:<28}{len(xs):>5}{np.mean([x['named'] for x in xs]):>7.0%}"
                   f"{np.mean([bool(x['wrong']) for x in xs]):>11.0%}{np.mean([x['top_cell_right'] for x in xs]):>9.0%}"
                   f"{(np.median(fo) if fo else float('nan')):>13.3f}{(np.median(ho) if ho else float('nan')):>10.4f}"
