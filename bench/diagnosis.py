@@ -13,6 +13,11 @@ per protocol and effect: how often the diagnosis names it (target >= 90 %), how 
 residual map's top-ranked cell names its sensor and regime, the fitted size over the true
 one, the held-out RMS ratio after/before; and for the nulls how often anything is reported
 (target: at most 5 %).
+
+The thermal lag is injected at no less than ``LAG_S`` (four times the temperature smoother's
+scale: shorter lags are rejected as read-out artefacts), and at that size where the null says it
+cannot be seen: in a first-order warm-up the read-out's rate is affine in its temperature, so the
+null's column is absorbed, while a real lag shows as its own start-up after power-on.
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from imupipe.diagnosis.select import NONCENTRALITY_80, VISIBLE_MIN
+from imupipe.diagnosis.select import LAG_MIN_S, NONCENTRALITY_80, VISIBLE_MIN
 from imupipe.effects.earth_rotation import EARTH_RATE
 from imupipe.pipeline.api import run_sessions
 from imupipe.sim.api import simulate
@@ -48,27 +53,42 @@ def effect_params(effect: str, a: float) -> dict:
         "gyro_g_sensitivity": lambda: {"G": (a * G_DIR).tolist()},
         "bias_temperature_nonlinear": lambda: {"k2_per_C2": list(a * UNIT), "sensor": "gyro"},
         "earth_rotation": lambda: {"latitude_deg": float(np.degrees(np.arcsin(min(a / EARTH_RATE, 1.0))))},
+        "gyro_scale_temperature": lambda: {"ppm_per_C": list(a * UNIT)},
+        "gyro_scale_asymmetry": lambda: {"eps": list(a * UNIT)},
+        "thermal_lag": lambda: {"tau_s": a},
+        "warmup_transient": lambda: {"amp": list(a * UNIT), "tau_s": WARMUP_TAU_S, "sensor": "gyro"},
     }[effect]()
 
 
 def fitted_size(effect: str, params: dict) -> float:
-    if effect == "accel_gyro_time_offset":
-        return float(params["dt_s"])
+    if effect in ("accel_gyro_time_offset", "thermal_lag"):
+        return float(params["dt_s" if effect == "accel_gyro_time_offset" else "tau_s"])
     if effect == "gyro_g_sensitivity":
         return float(np.sum(np.asarray(params["G"]) * G_DIR))
     if effect == "earth_rotation":  # the vertical rate Omega sin(lat)
         return EARTH_RATE * float(np.sin(np.radians(params["latitude_deg"])))
     key = {"lever_arm": "r_m", "accel_nonlinearity": "k2", "accel_scale_temperature": "ppm_per_C",
-           "bias_temperature_nonlinear": "k2_per_C2"}[effect]
+           "bias_temperature_nonlinear": "k2_per_C2", "gyro_scale_temperature": "ppm_per_C",
+           "gyro_scale_asymmetry": "eps", "warmup_transient": "amp"}[effect]
     return float(np.asarray(params[key]) @ UNIT)
 
 
-SENSOR = {"gyro_g_sensitivity": "gyro", "bias_temperature_nonlinear": "gyro", "earth_rotation": "gyro"}
+SENSOR = {"gyro_g_sensitivity": "gyro", "bias_temperature_nonlinear": "gyro", "earth_rotation": "gyro",
+          "gyro_scale_temperature": "gyro", "gyro_scale_asymmetry": "gyro", "warmup_transient": "gyro",
+          "thermal_lag": None}  # None: either triad (one lag for both, named after the one carrying more)
+MOTION = ("lever_arm", "accel_gyro_time_offset", "gyro_scale_temperature", "gyro_scale_asymmetry")
+WARMUP_TAU_S = 120.0  # the injected warm-up transient's time constant (one of select.WARMUP_TAUS_S)
+LAG_S = 4 * LAG_MIN_S  # the thermal lag's smallest injected size (shorter ones are read-out artefacts)
+
+
+def sensor_of(effect: str, sensor: str) -> bool:
+    """Whether a tested or named ``sensor`` is the bench's for ``effect``."""
+    return SENSOR.get(effect, "accel") in (None, sensor)
 
 
 def direction(effect: str) -> np.ndarray:
     """The unit direction of ``effect_params`` in the term's parameters (the information's axes)."""
-    if effect in ("accel_gyro_time_offset", "earth_rotation"):
+    if effect in ("accel_gyro_time_offset", "earth_rotation", "thermal_lag"):
         return np.ones(1)
     if effect == "gyro_g_sensitivity":
         return G_DIR.ravel()
@@ -99,19 +119,21 @@ def one_seed(args: tuple[str, int, list[str], float, str]) -> dict:
     mde = {}
     for t in null["tested"]:
         e = t["effect"]
-        if e in effects and t["visible_fraction"] >= VISIBLE_MIN and t["sensor"] == SENSOR.get(e, "accel"):
+        if e in effects and t["visible_fraction"] >= VISIBLE_MIN and sensor_of(e, t["sensor"]) \
+                and t.get("tau_s", WARMUP_TAU_S) == WARMUP_TAU_S:
             d = direction(e)
             lam = d @ np.asarray(t["information"]) @ d
             mde[e] = min(mde.get(e, np.inf), float(np.sqrt(NONCENTRALITY_80 / lam)) if lam > 0 else np.inf)
     runs = []
     for e in effects:
-        if e not in mde or not np.isfinite(mde[e]):
-            why = [n for n in null["not_identifiable"] if n["effect"] == e and n["sensor"] == SENSOR.get(e, "accel")]
+        unseen_lag = e == "thermal_lag" and not np.isfinite(mde.get(e, np.inf))  # seen by its own start-up
+        if not unseen_lag and (e not in mde or not np.isfinite(mde[e])):
+            why = [n for n in null["not_identifiable"] if n["effect"] == e and sensor_of(e, n["sensor"])]
             runs.append({"effect": e, "skipped": "not identifiable on this protocol" + (
                 f" (visible {why[0]['visible_fraction']:.1%}, absorbed by {', '.join(why[0]['biases'])}; "
                 f"reveal with {why[0]['reveal_with']})" if why else "")})
             continue
-        a = factor * mde[e]
+        a = max(factor * mde.get(e, 0.0), LAG_S) if e == "thermal_lag" else factor * mde[e]
         try:
             doc = diagnose(protocol, seed, {e: effect_params(e, a)}, folder)
         except Exception as exc:  # noqa: BLE001
@@ -119,12 +141,11 @@ def one_seed(args: tuple[str, int, list[str], float, str]) -> dict:
             continue
         named = [f for f in doc["findings"] if f["effect"] == e]
         top = doc["top_cell"]
-        regime = "motion" if e in ("lever_arm", "accel_gyro_time_offset") else "static"
+        regime = "motion" if e in MOTION else "warmup" if e == "warmup_transient" else "static"
         runs.append({
             "effect": e, "size": a, "named": bool(named),
             "wrong": [f["effect"] for f in doc["findings"] if f["effect"] not in (e, "unknown")],
-            "top_cell_right": bool(top and top["sensor"] == SENSOR.get(e, "accel")
-                                   and top["regime"] in (regime, "all")),
+            "top_cell_right": bool(top and sensor_of(e, top["sensor"]) and top["regime"] in (regime, "all")),
             "top_cell": top and f"{top['sensor']}/{top['regime']}/{top['variable']}/{'-'.join(top['axes'])}",
             "fitted_over_true": fitted_size(e, named[0]["parameters"]) / a if named else None,
             "heldout_ratio": (named[0]["heldout_rms_after"] / named[0]["heldout_rms_before"]) if named else None,
@@ -155,7 +176,7 @@ def report(results: list[dict], factor: float) -> None:
                 continue
             fo = [x["fitted_over_true"] for x in xs if x["fitted_over_true"] is not None]
             ho = [x["heldout_ratio"] for x in xs if x["heldout_ratio"] is not None]
-            mde = np.median([r["mde"][e] for r in rs if e in r["mde"]])
+            mde = np.median([r["mde"][e] for r in rs if e in r["mde"]] or [np.nan])
             print(f"{proto:<10}{e:<28}{len(xs):>5}{np.mean([x['named'] for x in xs]):>7.0%}"
                   f"{np.mean([bool(x['wrong']) for x in xs]):>11.0%}{np.mean([x['top_cell_right'] for x in xs]):>9.0%}"
                   f"{(np.median(fo) if fo else float('nan')):>13.3f}{(np.median(ho) if ho else float('nan')):>10.4f}"
@@ -171,7 +192,9 @@ def main() -> None:
     ap.add_argument("--protocols", nargs="+", default=["gimbal", "standard"])
     ap.add_argument("--effects", nargs="+", default=["lever_arm", "accel_gyro_time_offset", "accel_nonlinearity",
                                                      "accel_scale_temperature", "gyro_g_sensitivity",
-                                                     "bias_temperature_nonlinear", "earth_rotation"])
+                                                     "bias_temperature_nonlinear", "earth_rotation",
+                                                     "gyro_scale_temperature", "gyro_scale_asymmetry", "thermal_lag",
+                                                     "warmup_transient"])
     ap.add_argument("--factor", type=float, default=5.0)
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--out", type=Path, default=None)

@@ -118,7 +118,8 @@ class Calibration:
         every model term of that sensor. ``signals``: what the terms need, by the names of the
         effects' ``regressors`` (``omega``, ``alpha`` rad/s, rad/s^2 for a lever arm; ``f_dot``
         m/s^3 for a time offset; ``f`` m/s^2 for a gyro g-sensitivity; ``t_on`` s for a warm-up;
-        ``north``/``up`` unit vectors for Earth's rate); a missing one is a ``ConfigError``."""
+        ``north``/``up`` unit vectors for Earth's rate; ``T_rate`` degC/s, the read-out's rate, for
+        a thermal lag, along the triad's own ``k``); a missing one is a ``ConfigError``."""
         triad = self[sensor]
         x = np.asarray(x, dtype=float)
         return triad.predict(x, T) + self._terms(sensor, x @ triad.S.T, x, T, signals)
@@ -143,6 +144,7 @@ class Calibration:
             inputs["T"] = np.broadcast_to(np.asarray(T, dtype=float), (len(sensed),))
         if sensor == "accel":
             inputs["f"] = x
+        inputs["k"] = self[sensor].k
         inputs.update(signals or {})
         return sum(registry.get("effects", t["effect"]).term(inputs, t["parameters"], self[sensor].S)
                    for t in terms)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from imupipe.diagnosis.forward import JointModel, MotionAccel, Noise, Start
 from imupipe.observations import Rests, Turns
 from imupipe.sim.api import simulate_arrays
 
@@ -65,3 +66,16 @@ def small_gimbal(seed: int, imu: dict, **kw):
     params = dict(grid_deg=60.0, rest_s=2.0, step_s=1.5, n_rotations=6, rotation_s=2.0)
     params.update(kw)
     return simulate_arrays("gimbal", None, seed, imu=imu, env={"gravity_m_s2": G}, **params)
+
+
+def joint_model(out, truth):
+    """The per-sample model of a simulated session, started at its true calibration, with its rests,
+    turns and accelerometer samples (tests of the diagnosis)."""
+    rests, turns = rests_from_truth(out, truth)
+    cal = truth.calibration
+    start = Start(np.linalg.inv(cal["accel"].M), cal["accel"].b0, cal["gyro"].M, cal["gyro"].b0,
+                  cal["accel"].k, cal["gyro"].k)
+    noise = Noise(np.eye(3) * 5e-3**2, np.eye(3) * 3.5e-4**2, np.full(3, 1e-9), np.full(3, 1e-10))
+    acc = MotionAccel.select(out.t, out.raw["accel"], rests, turns)
+    return JointModel(rests, turns, G, start, noise, fit_k=True, accel=acc,
+                      temperature=(out.t, out.temperature)), rests, turns

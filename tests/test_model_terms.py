@@ -10,7 +10,7 @@ from imupipe.models import Calibration, TriadCalibration
 
 R_M = np.array([0.03, -0.02, 0.01])
 ACCEL = TriadCalibration("accel", np.array([[1.02, 0.01, 0], [0, 0.98, 0.02], [0, 0, 1.01]]), np.array([0.1, -0.2, 0.05]))
-GYRO = TriadCalibration("gyro", np.eye(3) * 1.01, np.array([1e-3, 0, -2e-3]))
+GYRO = TriadCalibration("gyro", np.eye(3) * 1.01, np.array([1e-3, 0, -2e-3]), np.array([2e-4, -1e-4, 5e-5]))
 
 
 def _calibration(terms: list[dict]) -> Calibration:
@@ -44,3 +44,23 @@ def test_gyro_g_sensitivity_and_quadratic_temperature_bias_terms_and_a_missing_s
     np.testing.assert_allclose(cal.apply("gyro", y, T, signals={"f": f}), w, atol=1e-12)
     with pytest.raises(ConfigError, match="'f'"):
         cal.apply("gyro", y, T)
+
+
+def test_gyro_scale_and_thermal_lag_terms():
+    rng = np.random.default_rng(2)
+    w, T, rate = rng.normal(0, 1, (20, 3)), rng.uniform(10, 40, 20), rng.normal(0, 0.02, 20)
+    ppm, eps, tau = np.array([100.0, -50.0, 30.0]), np.array([1e-3, -2e-3, 5e-4]), 60.0
+    cal = _calibration([
+        {"effect": "gyro_scale_temperature", "sensor": "gyro", "parameters": {"ppm_per_C": ppm.tolist()}},
+        {"effect": "gyro_scale_asymmetry", "sensor": "gyro", "parameters": {"eps": eps.tolist()}},
+        {"effect": "thermal_lag", "sensor": "gyro", "parameters": {"tau_s": tau}},
+    ])
+    y = cal.predict("gyro", w, T, signals={"T_rate": rate})
+    sensed = w @ GYRO.S.T
+    lag = tau * np.outer(rate, GYRO.k)  # the bias follows the die, tau dT/dt ahead of the read-out
+    expected = GYRO.predict(w, T) + sensed * np.outer(T - 25, ppm * 1e-6) + np.abs(sensed) * eps + lag
+    np.testing.assert_allclose(y, expected, atol=1e-15)
+    # the terms are evaluated at the nominal correction: exact to first order (terms ~1e-3 of x)
+    np.testing.assert_allclose(cal.apply("gyro", y, T, signals={"T_rate": rate}), w, atol=1e-5)
+    with pytest.raises(ConfigError, match="'T_rate'"):
+        cal.predict("gyro", w, T)

@@ -32,15 +32,17 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
     findings, not_confirmed, kept = [], [], []
     for i, f in enumerate(accepted):
         doc = _finding(lin, rp, f, accepted[:i] + accepted[i + 1:], effects)
-        if doc["heldout_rms_after"] < doc["heldout_rms_before"] and doc["heldout_z"] >= HELDOUT_Z:
+        rejects = f.tested.candidate.rejects
+        unphysical = rejects(f.theta) if rejects else None  # e.g. a thermal lag the read-out makes
+        if not unphysical and doc["heldout_rms_after"] < doc["heldout_rms_before"] and doc["heldout_z"] >= HELDOUT_Z:
             findings.append(doc)
             kept.append(f)
         else:  # significant on the data it was fitted to, not better on data it was not: not stood behind
             not_confirmed.append({"effect": doc["effect"], "sensor": doc["sensor"], "regime": doc["regime"],
                                   "parameters": doc["parameters"], "significance": doc["significance"],
-                                  "reason": f"held-out RMS did not improve significantly ({doc['heldout_rms_before']:.4g} "
-                                            f"-> {doc['heldout_rms_after']:.4g}, z = {doc['heldout_z']:.2f} "
-                                            f"< {HELDOUT_Z})"})
+                                  "reason": unphysical or
+                                  f"held-out RMS did not improve significantly ({doc['heldout_rms_before']:.4g} "
+                                  f"-> {doc['heldout_rms_after']:.4g}, z = {doc['heldout_z']:.2f} < {HELDOUT_Z})"})
     # structure the accepted terms leave: the generic library tested conditionally on them
     given = np.hstack([f.tested.projected for f in kept]) if kept else None
     left = structure_cells(lin, given, rp, bootstrap=True)

@@ -10,7 +10,9 @@ One place for these detectors: the ``screen_events`` stage runs them before any 
   several g, hundreds of deg/s, for one sample);
 - **splice**: the accelerometer's gravity direction jumps between two consecutive samples,
   from one quiet stretch to another, by more than the gyro's measured rotation around them
-  can explain (a recording made of sections joined together).
+  can explain (a recording made of sections joined together);
+- **saturation**: gyro samples held at the triad's full scale (``clipped``): the rotation
+  beyond it was not measured, so no model of the gyro can be integrated across them.
 
 Times are seconds from the session's first sample (``t0_ns``), as the rests' clock.
 """
@@ -44,6 +46,8 @@ SHOCK_GYRO_RAD_S = 1.0  # 57 deg/s in one sample
 SPLICE_MIN_DEG = 5.0  # gravity jumps smaller than this are not judged
 SPLICE_WINDOW = 10  # samples each side whose median gives the directions before and after
 STEP_CLEAN = 0.2  # each side stays within this fraction of the jump of its median (quiet)
+MIN_RAIL_RUN = 2  # consecutive samples at a rail that mean clipping
+SATURATION_JOIN_S = 0.5  # clipped runs closer than this are one event
 
 
 def nominal_interval(t_s: np.ndarray) -> float:
@@ -127,6 +131,52 @@ def find_splices(t_a: np.ndarray, a: np.ndarray, t_g: np.ndarray, w: np.ndarray,
     return out
 
 
+def clipped(w: np.ndarray, limit: float | None = None) -> np.ndarray:
+    """(k, 3) bool: the samples of ``w`` (k, 3) held at the full scale.
+
+    With ``limit`` a sample is clipped when ``|w| >= limit``. Otherwise a rail is an axis's
+    largest or smallest value, held for ``MIN_RAIL_RUN`` or more consecutive samples, whose
+    magnitude is also the rail of another axis or sign: the triad's common full scale. (A
+    single axis resting at its extreme is a constant-rate turn, not clipping.)"""
+    if limit is not None:
+        return np.abs(w) >= limit
+    flag = np.zeros(w.shape, bool)
+    if not len(w):
+        return flag
+    rails = []  # (axis, value, run mask)
+    for ax in range(3):
+        for rail in (w[:, ax].max(), w[:, ax].min()):
+            at = np.abs(w[:, ax] - rail) <= 1e-9 * max(abs(rail), 1e-300)
+            edges = np.diff(np.concatenate([[0], at.astype(np.int8), [0]]))
+            run = np.zeros(len(w), bool)
+            for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True):
+                if b - a >= MIN_RAIL_RUN:
+                    run[a:b] = True
+            if run.any() and rail != 0:
+                rails.append((ax, rail, run))
+    for i, (ax, rail, run) in enumerate(rails):
+        if any(j != i and abs(abs(r) - abs(rail)) <= 1e-6 * abs(rail) for j, (_, r, _) in enumerate(rails)):
+            flag[:, ax] |= run
+    return flag
+
+
+def find_saturation(t_s: np.ndarray, w: np.ndarray, sensor: str = "gyro") -> list[Event]:
+    """Stretches where ``w`` (k, 3) sits on the rails of its full scale (``clipped``), runs
+    closer than ``SATURATION_JOIN_S`` joined."""
+    hit = np.flatnonzero(clipped(w).any(axis=1))
+    if not len(hit):
+        return []
+    cuts = np.flatnonzero(np.diff(t_s[hit]) > SATURATION_JOIN_S)
+    out = []
+    for a, b in zip(np.r_[0, cuts + 1], np.r_[cuts, len(hit) - 1], strict=True):
+        i0, i1 = hit[a], hit[b]
+        top = float(np.abs(w[hit[a:b + 1]]).max())
+        out.append(Event("saturation", sensor, (float(t_s[i0]), float(t_s[i1])),
+                         f"{sensor}: samples clipped at {top:.4g} (the full scale) between {t_s[i0]:.2f} "
+                         f"and {t_s[i1]:.2f} s: the rotation beyond it was not measured"))
+    return out
+
+
 def detect(streams: dict[str, tuple[np.ndarray, np.ndarray]], *, gap_factor: float = GAP_FACTOR,
            gap_min_s: float = GAP_MIN_S, shock: dict[str, float] | None = None,
            splice_min_deg: float = SPLICE_MIN_DEG) -> list[Event]:
@@ -139,6 +189,8 @@ def detect(streams: dict[str, tuple[np.ndarray, np.ndarray]], *, gap_factor: flo
         events += find_gaps(t, sensor, gap_factor, gap_min_s)
         if sensor in shock:
             events += find_shocks(t, y, sensor, shock[sensor])
+    if "gyro" in streams:
+        events += find_saturation(*streams["gyro"])
     if "accel" in streams and "gyro" in streams:
         events += find_splices(*streams["accel"], *streams["gyro"], min_deg=splice_min_deg)
     return sorted(events, key=lambda e: e.window[0])

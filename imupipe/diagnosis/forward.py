@@ -55,6 +55,7 @@ from ..solvers.triad_covariance import shape_basis
 from .attitude import Attitude, MotionSamples, Points, Quadrature, RateDerivatives
 
 _LOWER = shape_basis("lower")  # (6, 3, 3)
+SAMPLE_CHUNK = 8192  # motion samples whose derivatives are formed at once (memory, not speed)
 BLOCKS = ("accel_rest", "gyro_rest", "walk_gyro", "walk_accel", "turn", "accel_motion", "k_prior")
 SENSOR_OF = {"accel_rest": "accel", "gyro_rest": "gyro", "turn": "gyro", "accel_motion": "accel",
              "walk_gyro": "gyro", "walk_accel": "accel", "k_prior": "prior"}
@@ -806,42 +807,47 @@ class JointModel:
         if not jac:
             block(r.ravel(), None)
             return
-        Phi = att.sensitivity(D, self.accel_points)  # (k, 3, 21), or (k, 3, 6) the walks' alone
-        Uz = Rt @ dn @ Bp  # d ub / d z  (k, 3, 2)
-        Uphi = Rt @ skew(nvec)  # d ub / d phi (k, 3, 3)
-        WS = -g * self.W_sample @ S_a  # d r / d ub
-        dr_dz = WS @ Uz  # (k, 3, 2)
-        dr_gyro = (WS @ Uphi) @ Phi  # (k, 3, 21)
-        del Phi, Uphi
-        at_end = lay["where_last"]
-        dr_gyro[at_end] += mu[at_end, None, None] * np.einsum("kia,kap->kip", dr_dz[at_end], dz_gyro[j[at_end]])
-        if block.globals:
-            Jg = block.reserve(3 * k).reshape(k, 3, Pg)
-            WL = np.einsum("ij,ljm->ilm", self.W_sample, _LOWER)  # (3, 6, 3)
-            Jg[:, :, gl["S_a"]] = -(f @ WL.reshape(-1, 3).T).reshape(k, 3, -1)
-            Jg[:, :, gl["b_a"]] = -self.W_sample
-            if self.fit_k:
-                Jg[:, :, gl["k_a"]] = -self.W_sample * self.dT_acc[:, None, None]
-            # M_g and b_g are adjacent columns, k_g apart (cols_g: their 15, -1 where absent)
+        Jg = block.reserve(3 * k).reshape(k, 3, Pg) if block.globals else None  # written chunk by chunk
+        s0 = block(r.ravel(), None)
+        if Jg is not None:  # M_g and b_g are adjacent columns, k_g apart (cols_g: their 15, -1 where absent)
             assert np.array_equal(cols_g[:12], np.arange(gl["M_g"].start, gl["b_g"].stop))
-            Jg[:, :, gl["M_g"].start:gl["b_g"].stop] = dr_gyro[:, :, :12]
-            if self.fit_k:
-                Jg[:, :, gl["k_g"]] = dr_gyro[:, :, 12:15]
-        s0 = block(r.ravel(), None)  # its J_g is written
-        vals = np.zeros((k, 3, 16))
-        vals[:, :, 0:2] = (1 - mu)[:, None, None] * dr_dz
-        hi = mu[:, None, None] * dr_dz
-        end = lay["where_last"]
-        hi[end] = np.einsum("kia,kab->kib", hi[end], dz_dq[j[end]])
-        vals[:, :, 2:4] = hi
-        vals[:, :, 4:10] = dr_gyro[:, :, -6:]
-        if "wa" in self.walks:
-            vals[:, :, 10:13] = -(1 - lam)[:, :, None] * self.W_sample
-            vals[:, :, 13:16] = -lam[:, :, None] * self.W_sample
-        keep = lay["keep"]
+        WS = -g * self.W_sample @ S_a  # d r / d ub
+        WL = np.einsum("ij,ljm->ilm", self.W_sample, _LOWER)  # (3, 6, 3)
+        last = np.zeros(k, bool)
+        last[lay["where_last"]] = True
+        for a in range(0, k, SAMPLE_CHUNK):  # the derivatives of SAMPLE_CHUNK samples at a time
+            c = slice(a, a + SAMPLE_CHUNK)
+            n_c = len(acc.t[c])
+            Phi = att.sensitivity(D, self.accel_points.subset(np.arange(a, a + n_c)))  # (c, 3, 21) or (c, 3, 6)
+            dr_dz = WS @ (Rt[c] @ dn[c] @ Bp[c])  # d r / d z (c, 3, 2)
+            dr_gyro = (WS @ (Rt[c] @ skew(nvec[c]))) @ Phi  # (c, 3, 21)
+            del Phi
+            end = np.flatnonzero(last[c])
+            jc, mc = j[c], mu[c]
+            dr_gyro[end] += mc[end, None, None] * np.einsum("kia,kap->kip", dr_dz[end], dz_gyro[jc[end]])
+            if Jg is not None:
+                Jc = Jg[c]
+                Jc[:, :, gl["S_a"]] = -(f[c] @ WL.reshape(-1, 3).T).reshape(n_c, 3, -1)
+                Jc[:, :, gl["b_a"]] = -self.W_sample
+                if self.fit_k:
+                    Jc[:, :, gl["k_a"]] = -self.W_sample * self.dT_acc[c, None, None]
+                Jc[:, :, gl["M_g"].start:gl["b_g"].stop] = dr_gyro[:, :, :12]
+                if self.fit_k:
+                    Jc[:, :, gl["k_g"]] = dr_gyro[:, :, 12:15]
+            vals = np.zeros((n_c, 3, 16))
+            vals[:, :, 0:2] = (1 - mc)[:, None, None] * dr_dz
+            hi = mc[:, None, None] * dr_dz
+            hi[end] = np.einsum("kia,kab->kib", hi[end], dz_dq[jc[end]])
+            vals[:, :, 2:4] = hi
+            vals[:, :, 4:10] = dr_gyro[:, :, -6:]
+            if "wa" in self.walks:
+                vals[:, :, 10:13] = -(1 - lam[c])[:, :, None] * self.W_sample
+                vals[:, :, 13:16] = -lam[c][:, :, None] * self.W_sample
+            keep = lay["keep"][c]
 
-        def where() -> tuple[np.ndarray, np.ndarray]:
-            rows = np.broadcast_to((s0 + 3 * np.arange(k)[:, None] + np.arange(3))[:, :, None], (k, 3, 16))
-            return rows[keep], np.broadcast_to(lay["cols"][:, None, :], (k, 3, 16))[keep]
+            def where(a=a, n_c=n_c, keep=keep) -> tuple[np.ndarray, np.ndarray]:
+                rows = np.broadcast_to((s0 + 3 * np.arange(a, a + n_c)[:, None] + np.arange(3))[:, :, None],
+                                       (n_c, 3, 16))
+                return rows[keep], np.broadcast_to(lay["cols"][a:a + n_c, None, :], (n_c, 3, 16))[keep]
 
-        local.flat(where, vals[keep])
+            local.flat(where, vals[keep])

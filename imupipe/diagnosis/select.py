@@ -30,9 +30,16 @@ the nuisances' Jacobian, through the fit's own block-tridiagonal system), so
 
 A p-value is the larger of the asymptotic (chi-square) one and a wild bootstrap's over 5-s
 time blocks (``wild_p``: the recording's own noise, whatever its colour, without a noise
-model); ``bench/diagnosis.py`` measures how often nulls produce a finding. Effects whose terms act through the attitude integration (gyro scale
-asymmetry, saturation, g-sensitivity in motion), the magnetometer and the thermal lag are not
-tested here yet: ``untested`` lists them with the reason.
+model); ``bench/diagnosis.py`` measures how often nulls produce a finding.
+
+The gyro's scale terms (temperature, asymmetry) act on the rate it senses, so only inside
+motions, through the attitude: most of their evidence is the attitude path's rows, and they are
+held out by whole motions with those rows, judged whitened. The thermal lag is one ``tau`` for
+both triads along their ``k``, from the slope of a spline through the de-quantised read-out;
+a fitted lag below the temperature smoother's scale is the read-out's quantisation
+(``rejects``: not confirmed). Saturation is not a term: clipped samples are events
+(``events.clipped``) and their motions are left out. The magnetometer's effects are not tested
+here yet: ``UNTESTED`` lists them with the reason.
 """
 
 from __future__ import annotations
@@ -44,6 +51,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 from scipy import stats
+from scipy.interpolate import BSpline, make_lsq_spline
 from scipy.signal import savgol_filter
 
 from ..effects.earth_rotation import EARTH_RATE
@@ -51,6 +59,7 @@ from ..errors import SolverError
 from ..models import T_REF_C
 from ..rotations import skew
 from ..solvers.blocktri import Bordered
+from ..temperature import SMOOTH_S
 from .linearised import Linearised
 from .residual_map import benjamini_hochberg
 
@@ -64,12 +73,13 @@ NONCENTRALITY_80 = 7.85  # chi2_1 noncentrality for 80 % power at alpha = 0.05
 BLOCK_S = 5.0  # time blocks of the wild bootstrap (rows within a block keep their signs together)
 BOOT_DRAWS = 999
 RIGID = 1e3  # weight on the walks' increments when the visible fraction is measured (q / 1e6)
+RATE_S = SMOOTH_S  # s: knot spacing of the temperature curve whose slope is the read-out's rate
+LAG_MIN_S = SMOOTH_S  # s: a shorter fitted thermal lag is the read-out's quantisation
+WHITENED = "whitened"  # a term judged on every row it reaches, whitened (the gyro's inside motions)
 GYRO_STEP = 1e-7  # rad/s: the largest perturbation of a gyro sample when differencing a term's column
 UNTESTED = {
-    "gyro_scale_asymmetry": "acts through the attitude integration inside motions (not in the score model yet)",
-    "gyro_saturation": "acts through the attitude integration inside motions (not in the score model yet)",
-    "gyro_scale_temperature": "acts through the attitude integration inside motions (not in the score model yet)",
-    "thermal_lag": "needs a profiled lag of the temperature stream (not in the score model yet)",
+    "gyro_saturation": "not a term to fit: clipped gyro samples sit on the rails of the full scale; the "
+                       "motions holding them are left out of the fits and reported as saturation events",
     "mag_current_interference": "the magnetometer is mapped (rest magnitude and dip, within-rest scatter) "
                                 "but has no score model yet: a flagged magnetometer cell is reported as unknown",
     "mag_field_gradient": "the magnetometer is mapped (rest magnitude and dip, within-rest scatter) "
@@ -85,6 +95,11 @@ REVEAL = {
     "gyro_g_sensitivity": "long rests at many orientations (each axis up and down)",
     "earth_rotation": "long rests at many orientations; the latitude known (it fixes the vertical rate)",
     "warmup_transient": "a cold start with rests in the first minutes after power-on",
+    "gyro_scale_temperature": "large rotations about every axis repeated across a wide temperature range",
+    "gyro_scale_asymmetry": "large rotations about every axis, each in one sense only (not undone by its "
+                            "reverse about the same axis)",
+    "thermal_lag": "a temperature that changes at different rates or reverses (a cool-down, a hot restart) "
+                   "with rests throughout; the bias temperature coefficients known",
 }
 
 
@@ -101,6 +116,8 @@ class Candidate:
     to_params: object
     extra_dof: int = 0  # profiled nonlinear parameters (tau): tested over a grid
     fixed: dict = field(default_factory=dict)
+    rejects: object = None  # theta -> why these parameters are not the effect (None: they may be)
+    heldout_sensor: str = ""  # the triad whose held-out rows prove it (default: its own)
 
 
 @dataclass
@@ -160,10 +177,16 @@ class Signals:
                 lam = np.clip((ms.t[sel] - ms.origin[j]) / span, 0, 1)[:, None]
                 u_g[sel] = (1 - lam) * u[model.p[j]] + lam * u[model.qr[j]]
         self.f_gyro_motion = g * u_g / np.maximum(np.linalg.norm(u_g, axis=1, keepdims=True), 1e-12)
+        omega, _ = model._rates(P, lin.x_l, derivatives=False)  # (N_g, 3) calibrated, model frame
+        self.x_gyro_motion = omega @ np.linalg.inv(P["M_g"]).T  # the same in the gyro's axes (sensed)
+        self.k = {"accel": P["k_a"], "gyro": P["k_g"]}
+        t_last = max(model.rests.t_end_s[-1], ms.t[-1] if len(ms.t) else -np.inf)
+        curve = temperature_curve(model, t_first, t_last)
+        self.T_rate_rest = temperature_rate(curve, model.rests.t_start_s, model.rests.t_end_s)
+        self.T_rate_motion = temperature_rate(curve, acc.t)
+        self.T_rate_gyro_motion = temperature_rate(curve, ms.t)
         if self.has_motion:
             self.f_motion = g * sig["gravity_motion"]
-            omega, _ = model._rates(P, lin.x_l, derivatives=False)
-            ms = model.motions
             self.omega = np.zeros((len(acc.t), 3))
             self.alpha = np.zeros((len(acc.t), 3))
             self.f_dot = np.zeros((len(acc.t), 3))
@@ -224,6 +247,41 @@ class Signals:
         return out
 
 
+def temperature_curve(model, t_first: float, t_last: float) -> BSpline:
+    """The model's (de-quantised) temperature, degC, as a least-squares cubic spline in time (s)
+    with knots ``RATE_S`` apart (at quantiles of its samples): the read-out's steps average out
+    within each interval, and its slope is smooth where a difference of the steps would not be.
+    Fitted where the stream's moving average is centred (half its window in from the recording's
+    ends, where it shrinks and flattens the slope), extrapolated beyond; a line when too short."""
+    stream = model._temperature
+    if stream is not None and len(stream[0]):
+        t, T = (np.asarray(a, float) for a in stream)
+        if t_last - t_first > 2 * SMOOTH_S:
+            t_first, t_last = t_first + SMOOTH_S / 2, t_last - SMOOTH_S / 2
+    else:
+        t, T = model.mid, model.dT + T_REF_C
+    ok = np.isfinite(T) & (t >= t_first) & (t <= t_last)
+    t, idx = np.unique(t[ok], return_index=True)
+    T = T[ok][idx]
+    if len(t) < 2:
+        return BSpline(np.r_[t_first, t_first, t_last, t_last], np.full(2, T[0] if len(T) else T_REF_C), 1)
+    degree = 3 if len(t) >= 8 else 1
+    inner = int((t[-1] - t[0]) // RATE_S) - 1
+    inner = min(max(inner, 0), len(t) - degree - 1)
+    knots = np.r_[[t[0]] * (degree + 1), np.quantile(t, np.linspace(0, 1, inner + 2)[1:-1]), [t[-1]] * (degree + 1)]
+    return make_lsq_spline(t, T, knots, k=degree)
+
+
+def temperature_rate(curve: BSpline, t0: np.ndarray, t1: np.ndarray | None = None) -> np.ndarray:
+    """(n,) degC/s: the slope of ``curve`` at ``t0`` (n,) s, or its mean over [``t0``, ``t1``]."""
+    t0 = np.asarray(t0, float)
+    if t1 is None:
+        return curve.derivative()(t0)
+    width = np.asarray(t1, float) - t0
+    return np.where(width > 0, (curve(t1) - curve(t0)) / np.where(width > 0, width, 1.0),
+                    curve.derivative()(t0))
+
+
 def _derivative(y: np.ndarray, t: np.ndarray, span_s: float = 0.1) -> np.ndarray:
     """d y / d t by a local cubic over ``span_s`` (Savitzky-Golay): differentiating raw noisy
     samples would put noise into the regressors and shrink the fitted term (errors in variables)."""
@@ -278,6 +336,28 @@ def candidates(lin: Linearised, frame: np.ndarray, registry) -> list[Candidate]:
         C = s.gyro_term(lambda at: eff["gyro_g_sensitivity"].regressors({"f": f_at[at]}))
         out.append(Candidate("gyro_g_sensitivity", "gyro", "static", [f"G{i}{j}" for i in range(3) for j in range(3)],
                              C, lambda th: {"G": (th.reshape(3, 3) @ Q).tolist()}))
+    # the gyro's scale terms act on the rate it senses: none at rest, the motions' through the attitude
+    # (most of their evidence is the attitude path's rows, which have no sensor units: judged whitened)
+    x_gyro = {"rest": np.zeros_like(s.f_rest), "gyro_motion": s.x_gyro_motion}
+    if "gyro_scale_temperature" in eff:
+        C = s.gyro_term(lambda at: eff["gyro_scale_temperature"].regressors({"x": x_gyro[at], "T": T_at[at]}))
+        out.append(Candidate("gyro_scale_temperature", "gyro", "motion", ["ppm_x", "ppm_y", "ppm_z"], C,
+                             lambda th: {"ppm_per_C": list(th)}, heldout_sensor=WHITENED))
+    if "gyro_scale_asymmetry" in eff:
+        C = s.gyro_term(lambda at: eff["gyro_scale_asymmetry"].regressors({"x": x_gyro[at]}))
+        out.append(Candidate("gyro_scale_asymmetry", "gyro", "motion", ["eps_x", "eps_y", "eps_z"], C,
+                             lambda th: {"eps": list(th)}, heldout_sensor=WHITENED))
+    if "thermal_lag" in eff:
+        # the biases follow the die, k (T_die - 25), the model the read-out: both triads read
+        # k tau dT_read/dt more (one tau); named after the triad that carries more of it
+        rate_at = {"rest": s.T_rate_rest, "motion": s.T_rate_motion, "gyro_motion": s.T_rate_gyro_motion}
+        parts = {sensor: term(sensor, lambda at, sensor=sensor: eff["thermal_lag"].regressors(
+            {"k": s.k[sensor], "T_rate": rate_at[at]})) for sensor in ("accel", "gyro")}
+        sensor = max(parts, key=lambda x: float(np.linalg.norm(parts[x])))
+        C = parts["accel"] + parts["gyro"]
+        tau_of = _lag_of(lin, C, sensor)
+        out.append(Candidate("thermal_lag", sensor, "static", ["tau_s"], C, lambda th: {"tau_s": tau_of(th)},
+                             rejects=lambda th: _not_a_lag(tau_of(th))))
     if "earth_rotation" in eff:
         # at rest Earth's rate has a vertical part along gravity (Omega sin(lat), the same in every
         # rest: an isotropic g-sensitivity G = (Omega sin(lat) / g) I) and a horizontal part that
@@ -300,6 +380,35 @@ def candidates(lin: Linearised, frame: np.ndarray, registry) -> list[Candidate]:
                                                                          "sensor": sensor},
                                      extra_dof=len(WARMUP_TAUS_S), fixed={"tau_s": tau}))
     return [c for c in out if np.any(c.columns)]
+
+
+def _lag_of(lin: Linearised, C: np.ndarray, sensor: str):
+    """theta -> the lag, s. The column is ``k^ dT/dt`` along the calibration's ``k^``, which the lag
+    itself biased (a fit of the read-out's k absorbs part of ``k tau dT/dt``); refitted with the
+    term, the globals give the ``k`` the lag acts along: ``tau = theta (k^ . k) / (k . k)``."""
+    key = "k_a" if sensor == "accel" else "k_g"
+    sl = lin.model.glob.slices.get(key)
+    if sl is None:  # k held at the calibration's: nothing to refit
+        return lambda th: float(th[0])
+    k_hat = lin.model.unpack(lin.x_g)[key]
+    z_r = lin.system.solve(lin.J_g.T @ lin.r, lin.J_l.T @ lin.r)[0][sl]
+    z_c = project(lin, C)[1][sl, 0]
+
+    def tau(th: np.ndarray) -> float:
+        k = k_hat - z_r - z_c * float(th[0])
+        return float(th[0]) * float(k_hat @ k) / max(float(k @ k), 1e-300)
+    return tau
+
+
+def _not_a_lag(tau: float) -> str | None:
+    """Why a fitted lag is not the die's: shorter than the temperature smoother, it is what the
+    read-out's steps leave in the de-quantised temperature (memo E15), and a negative one is a lead."""
+    if tau < 0:
+        return f"a thermal lag of {tau:.3g} s would be the read-out leading the die, not lagging it"
+    if tau < LAG_MIN_S:
+        return (f"a thermal lag of {tau:.3g} s is below the temperature smoother's {LAG_MIN_S:g} s: "
+                "the read-out's quantisation, not the die lagging its sensor")
+    return None
 
 
 def _latitude(th: np.ndarray) -> dict:
@@ -496,10 +605,9 @@ def raw_units(lin: Linearised, r: np.ndarray) -> dict[str, tuple[np.ndarray, np.
     return out
 
 
-def _fold_of_rows(lin: Linearised, stretches: int | None = FOLDS * STRETCHES_PER_FOLD) -> np.ndarray:
-    """(N,) the fold of every data row (-1: prior rows, in every training set): the recording
-    cut into ``stretches`` contiguous stretches of time (each rest and each motion whole in
-    one), dealt to the ``FOLDS`` folds in turn; ``None``: single rests and motions dealt out."""
+def _row_groups(lin: Linearised, paths: bool = False) -> np.ndarray:
+    """(N,) the rest (``i``) or motion (``n + j``) of every data row, -1 for prior rows;
+    ``paths``: a motion's attitude-path rows (``turn``: the gyro's evidence inside it) count as its."""
     model = lin.model
     groups = np.full(len(lin.r), -1)
     for name in ("accel_rest", "gyro_rest"):
@@ -508,6 +616,19 @@ def _fold_of_rows(lin: Linearised, stretches: int | None = FOLDS * STRETCHES_PER
     rm = _rows3(lin, "accel_motion")
     if len(rm):
         groups[rm] = (model.n + model.accel.motion)[:, None]
+    if paths:
+        turn = lin.rows.of("turn")
+        groups[turn] = model.n + lin.rows.index[turn]
+    return groups
+
+
+def _fold_of_rows(lin: Linearised, stretches: int | None = FOLDS * STRETCHES_PER_FOLD,
+                  paths: bool = False) -> np.ndarray:
+    """(N,) the fold of every data row (-1: prior rows, in every training set): the recording
+    cut into ``stretches`` contiguous stretches of time (each rest and each motion whole in
+    one), dealt to the ``FOLDS`` folds in turn; ``None``: single rests and motions dealt out
+    (``paths``: with their attitude-path rows, ``_row_groups``)."""
+    groups = _row_groups(lin, paths)
     used = groups >= 0
     if stretches is None:
         return np.where(used, (groups * 7919) % FOLDS, -1)
@@ -574,14 +695,21 @@ def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Find
 
 def _sensor_rms(lin: Linearised, finding: Finding, before: np.ndarray, after: np.ndarray
                 ) -> tuple[float, float, float]:
-    """Held-out RMS of the finding's sensor rows without and with the term, and the z-score of
-    the improvement: the whitened squared error's decrease (the model's own weights: a precise
-    rest mean counts for more than a noisy motion sample) summed per rest and per motion, its
-    mean over them against its standard error (paired; positive: the term predicts better)."""
-    sensor = finding.tested.candidate.sensor
+    """Held-out RMS of the finding's sensor rows without and with the term (``WHITENED``: of
+    every row it reaches, whitened), and the z-score of the improvement: the whitened squared
+    error's decrease (the model's own weights: a precise rest mean counts for more than a noisy
+    motion sample) summed per rest and per motion, its mean over them against its standard
+    error (paired; positive: the term predicts better)."""
+    sensor = finding.tested.candidate.heldout_sensor or finding.tested.candidate.sensor
     rows = np.any(finding.tested.candidate.columns != 0, axis=1)
-    e0, group, w0 = raw_units(lin, np.where(rows, before, 0))[sensor]
-    e1, _, w1 = raw_units(lin, np.where(rows, after, 0))[sensor]
+    if sensor == WHITENED:
+        group = _row_groups(lin, paths=True)
+        rows &= group >= 0
+        e0, e1, group = before[rows][:, None], after[rows][:, None], group[rows]
+        w0, w1 = e0, e1
+    else:
+        e0, group, w0 = raw_units(lin, np.where(rows, before, 0))[sensor]
+        e1, _, w1 = raw_units(lin, np.where(rows, after, 0))[sensor]
     used = np.any(e0 != 0, axis=1)
     if not used.any():
         return float("nan"), float("nan"), float("nan")
@@ -598,7 +726,7 @@ def _heldout_projected(lin: Linearised, rp: np.ndarray, finding: Finding, others
     """Single rests and motions dealt to the folds, the projected columns fitted to the nominal
     model's residual: a motion term (only the motion's own attitude path could copy it, and a
     held-out motion is whole), and the fallback."""
-    fold = _fold_of_rows(lin, None)
+    fold = _fold_of_rows(lin, None, paths=finding.tested.candidate.heldout_sensor == WHITENED)
     base = np.hstack([f.tested.projected for f in others]) if others else np.zeros((len(rp), 0))
     full = np.hstack([base, finding.tested.projected])
     before, after = np.zeros_like(rp), np.zeros_like(rp)

@@ -19,6 +19,7 @@ class GyroScaleAsymmetry(EffectBase):
     sensors = ("gyro",)
     stage = "sensed"
     params = AsymmetryParams
+    linear = ("eps",)
     physics = "the gyro's scale factor differs between positive and negative rates."
 
     def _apply(self, streams, ctx, p, rng) -> None:

@@ -26,13 +26,13 @@ from pydantic import Field
 from scipy.optimize import least_squares
 
 from ..components import Params
+from ..diagnosis.events import clipped
 from ..errors import SolverError
 from ..observations import GyroObservations, TriadFit, Turns
 from ..rotations import carry, pad_turns, turn_rotations
 from .triad_covariance import gauss_newton_cov
 
 MIN_TURNS = 5  # each turn gives two equations for nine constants
-MIN_RAIL_RUN = 2  # consecutive samples at a rail that mean clipping
 
 
 class GyroIntegrationParams(Params):
@@ -67,37 +67,11 @@ def rest_bias(bias: np.ndarray, bias_cov: np.ndarray) -> tuple[np.ndarray, np.nd
 
 
 def saturated_turns(turns: Turns, limit: float | None = None) -> tuple[np.ndarray, int, list[str]]:
-    """Turns holding clipped gyro samples: mask (m,), the number of such samples, the axes.
-
-    With ``limit`` (rad/s) a sample is clipped when ``|w| >= limit``. Otherwise a rail is
-    an axis's largest or smallest value over all turns, held for ``MIN_RAIL_RUN`` or more
-    consecutive samples, whose magnitude is also the rail of another axis or sign: the
-    triad's common full scale. (A single axis resting at its extreme is a constant-rate
-    turn, not clipping.)
-    """
+    """Turns holding clipped gyro samples (``events.clipped``): mask (m,), the number of such
+    samples, the axes."""
     if not len(turns):
         return np.zeros(0, bool), 0, []
-    w = np.concatenate(turns.gyro)
-    flag = np.zeros(w.shape, bool)
-    if limit is not None:
-        flag = np.abs(w) >= limit
-    else:
-        rails = []  # (axis, value, run mask)
-        for ax in range(3):
-            for rail in (w[:, ax].max(), w[:, ax].min()):
-                at = np.abs(w[:, ax] - rail) <= 1e-9 * max(abs(rail), 1e-300)
-                edges = np.diff(np.concatenate([[0], at.astype(np.int8), [0]]))
-                run = np.zeros(len(w), bool)
-                for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True):
-                    if b - a >= MIN_RAIL_RUN:
-                        run[a:b] = True
-                if run.any() and rail != 0:
-                    rails.append((ax, rail, run))
-        for i, (ax, rail, run) in enumerate(rails):
-            shared = any(j != i and abs(abs(r) - abs(rail)) <= 1e-6 * abs(rail)
-                         for j, (_, r, _) in enumerate(rails))
-            if shared:
-                flag[:, ax] |= run
+    flag = clipped(np.concatenate(turns.gyro), limit)
     bounds = np.cumsum([0] + [len(g) for g in turns.gyro])
     per_turn = np.array([flag[a:b].any() for a, b in itertools.pairwise(bounds)])
     axes = [a for a, f in zip("xyz", flag.any(axis=0), strict=True) if f]

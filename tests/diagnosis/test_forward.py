@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from forward_synth import G, noise_free_imu, rests_from_truth, small_gimbal, small_sphere_rig
 
+from imupipe.diagnosis import forward
 from imupipe.diagnosis.forward import JointModel, MotionAccel, Noise, Start
 
 
@@ -70,6 +71,20 @@ def test_jacobians_match_finite_differences(noise_free, sampled, q):
             fd = (model.residuals(xp_g, xp_l)[0] - model.residuals(xm_g, xm_l)[0]) / (2 * h)
             scale = max(1.0, np.abs(fd).max())
             assert np.abs(fd - J[:, c]).max() < 2e-5 * scale, (which, c, np.abs(fd - J[:, c]).max())
+
+
+def test_the_motion_samples_derivatives_formed_in_chunks_are_the_same(noise_free, monkeypatch):
+    out, truth = noise_free
+    model = _model(out, truth, q=(1e-9, 1e-10))
+    x_l = 1e-3 * np.random.default_rng(1).normal(size=model.stages.size)
+    r, J_g, J_l = model.residuals(model.x_g0, x_l)
+    assert len(model.accel.t) > 100
+    monkeypatch.setattr(forward, "SAMPLE_CHUNK", 37)  # many chunks, the last one short
+    fresh = _model(out, truth, q=(1e-9, 1e-10))  # no cached sparsity pattern
+    r2, J_g2, J_l2 = fresh.residuals(fresh.x_g0, x_l)
+    assert np.array_equal(r, r2)
+    assert np.allclose(J_g, J_g2, rtol=1e-12, atol=1e-12)
+    assert abs(J_l - J_l2).max() < 1e-12
 
 
 def test_linear_time_fit_is_the_dense_least_squares_optimum(noise_free):

@@ -9,17 +9,22 @@ import dataclasses
 
 import numpy as np
 import pytest
-from forward_synth import G, rests_from_truth
+from forward_synth import G, joint_model, noise_free_imu, rests_from_truth, small_gimbal
 
 from imupipe.diagnosis.forward import MotionAccel
+from imupipe.diagnosis.linearised import fit
 from imupipe.diagnosis.select import FOLDS, _fold_of_rows, candidates, examine, rigid_walks
+from imupipe.models import T_REF_C
 from imupipe.sim.api import known_effects, simulate_arrays
+from imupipe.sim.sensor import first_order_lag
 
 SEED = 3
 EFFECTS = {
     "gyro_g_sensitivity": {"G": [[2e-4, -1e-4, 0.0], [0.0, 1e-4, 3e-4], [-2e-4, 0.0, 1e-4]]},
     "accel_scale_temperature": {"ppm_per_C": [300.0, -200.0, 100.0]},
     "bias_temperature_nonlinear": {"k2_per_C2": [2e-5, -1e-5, 3e-5], "sensor": "gyro"},
+    "gyro_scale_temperature": {"ppm_per_C": [300.0, -200.0, 100.0]},
+    "gyro_scale_asymmetry": {"eps": [2e-3, -1e-3, 1.5e-3]},
 }
 
 
@@ -38,7 +43,7 @@ def test_a_terms_column_is_what_the_term_does_to_every_row(fitted, effect):
     dr = m2.residuals(lin.x_g, lin.x_l)[0] - lin.r
     sensor = params.get("sensor", "accel" if effect.startswith("accel") else "gyro")
     (c,) = [c for c in candidates(lin, np.eye(3), known_effects()) if (c.effect, c.sensor) == (effect, sensor)]
-    theta = np.ravel(params.get("G", params.get("ppm_per_C", params.get("k2_per_C2"))))
+    theta = np.ravel(next(v for k, v in params.items() if k != "sensor"))
     predicted = -c.columns @ theta  # the term in the readings: the residual grows by it
     motion = ~(lin.rows.of("accel_rest") | lin.rows.of("gyro_rest"))
     assert np.linalg.norm(dr[motion]) > 0.2 * np.linalg.norm(dr)  # the motions carry much of it
@@ -62,3 +67,26 @@ def test_held_out_folds_are_whole_rests_and_motions_in_stretches_spread_over_the
     order = np.argsort(lin.rows.t[rest], kind="stable")
     runs = 1 + np.count_nonzero(np.diff(fold[rest][order]))
     assert sorted(set(fold[data])) == list(range(FOLDS)) and runs >= FOLDS * 2  # folds recur in time
+
+
+def test_a_thermal_lags_column_is_what_the_lagged_read_out_does_to_every_row():
+    """The biases follow the die, the model the lagged read-out: both triads read k tau dT_read/dt
+    more, through the motions' attitude too. The read-out's rate is its slope over ``RATE_S``,
+    which blurs the lag's start at power-on (the first tau seconds): hence 5 %."""
+    imu = noise_free_imu(SEED)
+    imu["thermal"] = {**imu["thermal"], "self_heating_C": 40.0, "tau_s": 600.0}
+    out, truth = small_gimbal(SEED, imu)
+    tau = 60.0
+    lagged = dataclasses.replace(out, temperature=first_order_lag(out.t, out.temperature, tau))
+    model = joint_model(lagged, truth)[0]
+    lin = fit(model, max_iter=5)
+    die = copy.copy(model)  # the same model (its gravity parametrisation too) on the die's temperature
+    die._temperature = (out.t, out.temperature)
+    die.dT = die.rest_temperature() - T_REF_C
+    die.dT_gyro, die.dT_acc = die.temperature_at(die.motions.t) - T_REF_C, die.temperature_at(die.accel.t) - T_REF_C
+    dr = lin.r - die.residuals(lin.x_g, lin.x_l)[0]
+    (c,) = [c for c in candidates(lin, np.eye(3), known_effects()) if c.effect == "thermal_lag"]
+    predicted = -c.columns[:, 0] * tau
+    for block in ("accel_rest", "gyro_rest", "accel_motion", "turn"):  # every row the read-out reaches
+        assert np.linalg.norm(dr[lin.rows.of(block)]) > 0.1 * np.linalg.norm(dr)
+    assert np.linalg.norm(dr - predicted) < 0.05 * np.linalg.norm(dr)
