@@ -21,6 +21,7 @@ from .select import (BLOCK_S, BOOT_DRAWS, HELDOUT_Z, Q_FDR, REVEAL, UNTESTED, VI
 
 AXES = ("x", "y", "z")
 EARTH_IMPLAUSIBLE = 1.2  # a vertical rate above this many Earth rates is not Earth's
+SD_DRAWS = 400  # draws carrying a term's covariance to its parameters' standard deviations
 
 
 def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str = "", q: float = Q_FDR) -> dict:
@@ -92,11 +93,16 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
 
 def _finding(lin, rp: np.ndarray, f: Finding, others: list[Finding], effects: dict) -> dict:
     c = f.tested.candidate
-    params = {k: _json(v) for k, v in c.to_params(f.theta).items()}
     effect = c.effect
     if effect == "earth_rotation" and abs(f.theta[0]) > EARTH_IMPLAUSIBLE * EARTH_RATE:
         # a vertical rate Earth cannot make: the isotropic g-sensitivity it is indistinguishable from at rest
-        effect, params = "gyro_g_sensitivity", {"G": (float(f.theta[0]) / lin.model.g * np.eye(3)).tolist()}
+        effect = "gyro_g_sensitivity"
+
+        def to_params(th: np.ndarray) -> dict:
+            return {"G": (float(th[0]) / lin.model.g * np.eye(3)).tolist()}
+    else:
+        to_params = c.to_params
+    params = {k: _json(v) for k, v in to_params(f.theta).items()}
     before, after, z = heldout(lin, rp, f, others)
     contrib = (f.tested.projected @ f.theta) ** 2
     rows = np.any(c.columns != 0, axis=1)
@@ -109,6 +115,7 @@ def _finding(lin, rp: np.ndarray, f: Finding, others: list[Finding], effects: di
         "effect": effect, "sensor": c.sensor, "axes": list(AXES), "regime": c.regime,
         "windows": [[float(a), float(b)] for a, b in where],
         "parameters": params,
+        "parameters_sd": _parameter_sd(rp, f, others, to_params),
         "significance": {"statistic": f.statistic, "p_value": f.p_value, "p_value_asymptotic": f.p_asymptotic,
                          "delta_bic": f.delta_bic, "bootstrap_draws": BOOT_DRAWS},
         "heldout_rms_before": before, "heldout_rms_after": after, "heldout_z": z,
@@ -118,6 +125,28 @@ def _finding(lin, rp: np.ndarray, f: Finding, others: list[Finding], effects: di
                         f"p = {f.p_value:.2g}); modelled as {words} Held-out RMS {before:.4g} -> {after:.4g} "
                         f"(improvement z = {z:.1f})."),
     }
+
+
+def _parameter_sd(rp: np.ndarray, f: Finding, others: list[Finding], to_params, draws: int = SD_DRAWS) -> dict:
+    """1-sigma of each numeric parameter: the term's covariance from the linearised joint fit with
+    the other accepted terms (scaled by the affected rows' chi2/dof when above 1, as its test is),
+    carried through ``to_params`` by ``draws`` seeded draws (exact for the linear maps most are)."""
+    A = np.hstack([g.tested.projected for g in others] + [f.tested.projected])
+    k = f.tested.projected.shape[1]
+    rows = np.any(f.tested.candidate.columns != 0, axis=1)
+    left = rp - A @ np.linalg.lstsq(A, rp, rcond=None)[0]
+    scale = max(1.0, float(left[rows] @ left[rows]) / max(int(rows.sum()) - k, 1))
+    cov = np.linalg.pinv(A.T @ A)[-k:, -k:] * scale
+    w, V = np.linalg.eigh((cov + cov.T) / 2)
+    sample = f.theta + (np.random.default_rng(0).standard_normal((draws, k)) * np.sqrt(np.clip(w, 0, None))) @ V.T
+    out = {}
+    for name, value in to_params(f.theta).items():
+        try:
+            np.asarray(value, float)
+        except (TypeError, ValueError):
+            continue  # a label (the sensor), not a number
+        out[name] = _json(np.std([np.asarray(to_params(th)[name], float) for th in sample], axis=0))
+    return out
 
 
 def _unknown_finding(sensor: str, axes: list, regime: str, windows: list, parameters: dict,

@@ -45,6 +45,10 @@ def test_a_concealed_lever_arm_is_named_fitted_and_proved_on_held_out_motions(tm
     f = named[0]
     assert (f["sensor"], f["regime"]) == ("accel", "motion")
     np.testing.assert_allclose(f["parameters"]["r_m"], LEVER_M, atol=0.004)
+    # the noise's share of the error: far below the one-step linearisation's at 350x the minimum
+    # detectable size (docs/residual-map.md)
+    sd = np.asarray(f["parameters_sd"]["r_m"])
+    assert np.all(sd > 1e-6) and np.all(sd < 1e-4)
     assert f["heldout_rms_after"] < f["heldout_rms_before"]
     sig = f["significance"]  # the wild bootstrap's smallest p with 999 draws, and chi-square's
     assert sig["p_value"] == 1 / 1000 and sig["p_value_asymptotic"] < 1e-6 and sig["delta_bic"] < 0
