@@ -1,0 +1,199 @@
+"""Several recordings of one unit diagnosed as one: effects only the sessions together can show.
+
+``pool(parts)`` joins the fitted per-sample models of the sessions (``evaluate``) into one
+``Linearised`` that ``select``'s functions take unchanged:
+
+- the rows of all sessions stacked; each session's times shifted past the one before (by
+  whole ``BLOCK_S`` blocks and a gap), so the wild bootstrap's time blocks and the held-out
+  stretches never join two sessions;
+- the calibration (``S_a``, ``M_g``, ``k_a``, ``k_g``) one set of columns shared by every
+  session: one unit; the biases (``PER_SESSION``: the turn-on bias of each power cycle) one
+  block per session. A session whose temperature did not span enough to fit ``k`` has no
+  ``k`` columns (its bias absorbs ``k (T - 25)``, as in its own diagnosis);
+- the nuisances (gravity directions, bias walks, attitude paths) block-diagonal: the stage
+  offsets concatenated, so the block-tridiagonal solver sees independent chains;
+- each session's residual moved to one common calibration, ``r_s + J_s (x - x_s)`` at ``x``
+  the sessions' mean: each session's own fit ``x_s`` differs a little (its estimation error;
+  the Gauss-Newton step of the pooled system then moves all to the common optimum -- the
+  difference the sessions disagree on is what a pooled term can explain).
+
+``pooled_candidates`` stacks each session's catalogue columns (``select.candidates``) matched
+by effect, sensor, regime and fixed parameters: one effect, one parameter set across the
+sessions. ``diagnose_pooled`` then runs the single-session statistics (visible fraction,
+score tests, Benjamini-Hochberg forward selection, wild bootstrap, blocked held-out folds: each
+fold holds stretches of every session) on the pooled system.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import SimpleNamespace
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..errors import ImupipeError
+from .diagnose import catalogue_findings, coverage
+from .evaluate import Evaluation
+from .forward import Globals, Rows
+from .linearised import Linearised
+from .select import BLOCK_S, BOOT_DRAWS, Q_FDR, Candidate, candidates, examine, rigid_walks
+
+PER_SESSION = ("b_a", "b_g")  # the turn-on bias of each power cycle: never shared
+GAP_S = 60.0  # pooled time between two sessions (beyond any window's or block's reach)
+SAME_UNIT_TOL = 0.02  # largest difference of S_a or M_g entries two recordings of one unit show
+SAME_G_TOL = 1e-3  # relative difference of the sessions' local gravity
+
+
+@dataclass
+class PooledModel:
+    """What ``select`` reads of ``lin.model``, for the pooled rows: the layout (``rows``,
+    ``glob``, ``stages``), the rest count ``n`` and the motions' samples' motion ids (global),
+    the whiteners (``W_sample`` one per motion sample) and gravity ``g``."""
+
+    rows: Rows
+    glob: Globals
+    stages: SimpleNamespace
+    n: int
+    accel: SimpleNamespace
+    W_a: np.ndarray
+    W_g: np.ndarray
+    W_sample: np.ndarray
+    g: float
+    shift: np.ndarray  # (S,) s: session s's time 0 in the pooled clock
+    row_session: np.ndarray  # (N,) which session each row belongs to
+
+
+def check_one_unit(parts: list[Linearised], names: list[str]) -> None:
+    """Raise ``ImupipeError`` naming the session when the recordings are evidently not of one unit:
+    a calibration far from the first's, or another local gravity."""
+    first = parts[0]
+    ref = first.model.unpack(first.x_g)
+    for lin, name in zip(parts[1:], names[1:]):
+        P = lin.model.unpack(lin.x_g)
+        for key, what in (("S_a", "accelerometer scale/misalignment"), ("M_g", "gyro scale/misalignment")):
+            d = float(np.abs(P[key] - ref[key]).max())
+            if d > SAME_UNIT_TOL:
+                raise ImupipeError(f"{name}: its {what} differs from {names[0]}'s by {d:.3g} (more than "
+                                   f"{SAME_UNIT_TOL:g}, what one unit's recordings show): not the same unit; "
+                                   "diagnose each session on its own")
+        if abs(lin.model.g / first.model.g - 1) > SAME_G_TOL:
+            raise ImupipeError(f"{name}: local gravity {lin.model.g:.5f} m/s^2, {names[0]} {first.model.g:.5f}: "
+                               "pool only sessions recorded at one place")
+
+
+def pool(parts: list[Linearised]) -> Linearised:
+    """One ``Linearised`` of several sessions' fits (module docstring); ``lin.model`` is a
+    ``PooledModel``."""
+    shared: list[tuple[str, int]] = []
+    for lin in parts:
+        for name, s in lin.globals.slices.items():
+            if name not in PER_SESSION and name not in dict(shared):
+                shared.append((name, s.stop - s.start))
+    blocks = shared + [(f"{name}#{i}", parts[i].globals.slices[name].stop - parts[i].globals.slices[name].start)
+                       for i in range(len(parts)) for name in PER_SESSION if name in parts[i].globals.slices]
+    glob = Globals.build(blocks)
+    x_common = {name: np.mean([lin.x_g[lin.globals.slices[name]] for lin in parts
+                               if name in lin.globals.slices], axis=0) for name, _ in shared}
+    x_g = np.zeros(glob.size)
+    for name, _ in shared:
+        x_g[glob.slices[name]] = x_common[name]
+    r, J_g, shift = [], [], np.zeros(len(parts))
+    for i, lin in enumerate(parts):
+        J = np.zeros((len(lin.r), glob.size))
+        ri = lin.r.copy()
+        for name, s in lin.globals.slices.items():
+            target = glob.slices[f"{name}#{i}" if name in PER_SESSION else name]
+            J[:, target] = lin.J_g[:, s]
+            if name in PER_SESSION:
+                x_g[target] = lin.x_g[s]
+            else:  # the residual at the common calibration (linearised)
+                ri += lin.J_g[:, s] @ (x_common[name] - lin.x_g[s])
+        r.append(ri)
+        J_g.append(J)
+        if i + 1 < len(parts):
+            end = shift[i] + np.nanmax(lin.rows.t, initial=0.0) + GAP_S
+            shift[i + 1] = np.ceil(end / BLOCK_S) * BLOCK_S
+    offsets = [np.asarray(parts[0].model.stages.offsets)]
+    for lin in parts[1:]:
+        offsets.append(np.asarray(lin.model.stages.offsets)[1:] + offsets[-1][-1])
+    offsets = np.concatenate(offsets)
+    rows = Rows(np.concatenate([lin.rows.block for lin in parts]),
+                np.concatenate([lin.rows.index for lin in parts]),
+                np.concatenate([lin.rows.axis for lin in parts]),
+                np.concatenate([np.where(np.isfinite(lin.rows.t), lin.rows.t, 0.0) + shift[i]
+                                for i, lin in enumerate(parts)]))
+    n = np.cumsum([0] + [lin.model.n for lin in parts])
+    m = np.cumsum([0] + [lin.model.m for lin in parts])
+    motion = np.concatenate([lin.model.accel.motion + m[i] for i, lin in enumerate(parts)])
+    # the motion samples' group ids (``raw_units``: rests 0..n-1, then n + motion) stay distinct
+    model = PooledModel(
+        rows=rows, glob=glob, stages=SimpleNamespace(offsets=offsets, size=int(offsets[-1])), n=int(n[-1]),
+        accel=SimpleNamespace(motion=motion),
+        W_a=np.concatenate([lin.model.W_a for lin in parts]), W_g=np.concatenate([lin.model.W_g for lin in parts]),
+        W_sample=np.concatenate([np.broadcast_to(lin.model.W_sample, (len(lin.model.accel.t), 3, 3))
+                                 for lin in parts]),
+        g=float(np.mean([lin.model.g for lin in parts])), shift=shift,
+        row_session=np.concatenate([np.full(len(lin.r), i) for i, lin in enumerate(parts)]))
+    return Linearised(model, x_g, np.concatenate([lin.x_l for lin in parts]), np.concatenate(r),
+                      np.vstack(J_g), sp.block_diag([lin.J_l for lin in parts], format="csr"),
+                      max(lin.iterations for lin in parts), all(lin.converged for lin in parts))
+
+
+def pooled_candidates(parts: list[Linearised], frames: list[np.ndarray], effects: dict) -> list[Candidate]:
+    """Each session's catalogue columns stacked, matched by effect, sensor, regime and fixed
+    parameters (zero on a session that has no rows the term acts on); the first session's frame
+    names the parameters."""
+    per = [{_key(c): c for c in candidates(lin, Q, effects)} for lin, Q in zip(parts, frames)]
+    keys = list(dict.fromkeys(k for p in per for k in p))
+    out = []
+    for key in keys:
+        first = next(p[key] for p in per if key in p)
+        cols = [p[key].columns if key in p else np.zeros((len(lin.r), first.columns.shape[1]))
+                for p, lin in zip(per, parts)]
+        out.append(Candidate(first.effect, first.sensor, first.regime, first.names, np.vstack(cols),
+                             first.to_params, first.extra_dof, first.fixed))
+    return out
+
+
+def _key(c: Candidate) -> tuple:
+    return c.effect, c.sensor, c.regime, tuple(sorted(c.fixed.items()))
+
+
+def diagnose_pooled(evaluations: list[Evaluation], effects: dict, sessions: list[str],
+                    q: float = Q_FDR, files: list[str] | None = None) -> dict:
+    """The pooled ``diagnosis.json`` of several sessions of one unit (``sessions``: their names).
+    Findings are catalogue terms only (each session's own diagnosis maps its unexplained
+    structure); a finding's ``windows`` are seconds from the first sample of the session that
+    ``window_sessions`` names at the same place. ``files`` name the sessions in errors
+    (default ``sessions``)."""
+    if len(evaluations) < 2:
+        raise ImupipeError("a pooled diagnosis needs at least two sessions")
+    parts = [ev.lin for ev in evaluations]
+    check_one_unit(parts, files or sessions)
+    lin = pool(parts)
+    rigid = rigid_walks(lin)
+    tested = [examine(lin, c, rigid) for c in pooled_candidates(parts, [ev.frame for ev in evaluations], effects)]
+    _, findings, not_confirmed, _ = catalogue_findings(lin, tested, effects, q)
+    for f in findings:
+        f["windows"], f["window_sessions"] = _session_windows(lin.model, f["windows"], sessions)
+    return {"session": " + ".join(sessions), "sessions": sessions, "findings": findings,
+            **coverage(tested, effects), "not_confirmed": not_confirmed,
+            "fdr_q": q,
+            "shared": [name for name in lin.globals.slices if "#" not in name],
+            "per_session": list(PER_SESSION),
+            "method": "the sessions' fitted per-sample models joined: rows stacked, the calibration shared, "
+                      "the biases (turn-on) and every nuisance per session; score tests (the larger p of "
+                      f"chi-square and a wild bootstrap over {BLOCK_S:g}-s time blocks within each session, "
+                      f"{BOOT_DRAWS} draws), Benjamini-Hochberg forward selection with a backward check, "
+                      "5-fold blocked cross-validation whose folds hold stretches of every session"}
+
+
+def _session_windows(model: PooledModel, wins: list, sessions: list[str]) -> tuple[list, list]:
+    """Pooled-clock windows as (seconds from their session's first row, the session's name)."""
+    out, names = [], []
+    for a, b in wins:
+        i = int(np.searchsorted(model.shift, a, "right") - 1)
+        out.append([a - model.shift[i], b - model.shift[i]])
+        names.append(sessions[i])
+    return out, names
