@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from ..errors import ImupipeError
+from ..ingest import read_recording
 from ..io import write_text
 from ..paths import under
 from ..plugins import Registry, make_registry
@@ -49,12 +50,13 @@ def diagnose_sessions(sessions: Sequence[Path], pipeline: Path | None = None, ou
     sessions = list({_resolved(s): Path(s) for s in sessions}.values())
     if len(sessions) < 2:
         raise ImupipeError("a pooled diagnosis needs at least two different sessions")
-    written = run_sessions(sessions, pipeline, out, quiet, registry=registry, overrides=overrides, diagnose=True)
     spec = load_pipeline(pipeline, registry, tuple(overrides), diagnose=True)
     node = _diagnose_node(spec)
+    _check_sensors(sessions, spec, registry)  # before any calibration: a mix-up fails at once
+    written = run_sessions(sessions, pipeline, out, quiet, registry=registry, overrides=overrides, diagnose=True)
     ids = session_ids(sessions)
     cache = Cache(under(Path(out), CACHE_DIR))
-    evaluations, triads = [], []
+    evaluations = []
     with progress(quiet) as p:
         task = p.add_task("pooling", total=len(sessions) + 1)
         for session, sid in zip(sessions, ids, strict=True):
@@ -66,10 +68,6 @@ def diagnose_sessions(sessions: Sequence[Path], pipeline: Path | None = None, ou
                         inputs[port] = run.source.table(ref.port)
                 elif (table := run.table(ref)) is not None:
                     inputs[port] = table
-            triads.append({s for s in TRIADS if s in run.source.names()})
-            if triads[-1] != triads[0]:
-                raise ImupipeError(f"{session}: records {', '.join(sorted(triads[-1]))}, {sessions[0]} "
-                                   f"{', '.join(sorted(triads[0]))}: not recordings of one unit")
             try:
                 evaluations.append(evaluation(inputs, node.params))
             except ImupipeError as exc:
@@ -86,6 +84,18 @@ def diagnose_sessions(sessions: Sequence[Path], pipeline: Path | None = None, ou
     write_text(path, json.dumps(doc, indent=1, default=float))
     write_text(folder / "report.md", "\n".join(report_lines(doc)))
     return written, path
+
+
+def _check_sensors(sessions: list[Path], spec: Pipeline, registry: Registry) -> None:
+    """Raise ``ImupipeError`` naming the file whose triads differ from the first session's."""
+    first = None
+    for session in sessions:
+        streams = read_recording(session, registry, spec.reader).device(spec.device)
+        triads = sorted(s for s in TRIADS if s in streams)
+        if first is not None and triads != first:
+            raise ImupipeError(f"{session}: records {', '.join(triads)}, {sessions[0]} {', '.join(first)}: "
+                               "not recordings of one unit; pool only sessions of the same sensors")
+        first = first or triads
 
 
 def _diagnose_node(spec: Pipeline) -> Node:
