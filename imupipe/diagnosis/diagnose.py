@@ -52,14 +52,15 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
                       "cross-validation by rest and motion"}
 
 
-def catalogue_findings(lin, tested: list, effects: dict, q: float = Q_FDR
+def catalogue_findings(lin, tested: list, effects: dict, q: float = Q_FDR, held_out=heldout
                        ) -> tuple[np.ndarray, list[dict], list[dict], list[Finding]]:
-    """The selected catalogue terms (``select``) that also predict held-out data better:
-    ``(rp, findings, not_confirmed, kept)``, ``rp`` the residual with the nominal model refitted."""
+    """The selected catalogue terms (``select``) that also predict held-out data better
+    (``held_out(lin, rp, finding, others)``: RMS before, after, z): ``(rp, findings,
+    not_confirmed, kept)``, ``rp`` the residual with the nominal model refitted."""
     rp, accepted = select(lin, tested, q)
     findings, not_confirmed, kept = [], [], []
     for i, f in enumerate(accepted):
-        doc = _finding(lin, rp, f, accepted[:i] + accepted[i + 1:], effects)
+        doc = _finding(lin, rp, f, accepted[:i] + accepted[i + 1:], effects, held_out)
         if doc["heldout_rms_after"] < doc["heldout_rms_before"] and doc["heldout_z"] >= HELDOUT_Z:
             findings.append(doc)
             kept.append(f)
@@ -101,14 +102,14 @@ def coverage(tested: list, effects: dict) -> dict:
     return {"not_identifiable": not_identifiable, "tested": tested_doc, "untested": untested}
 
 
-def _finding(lin, rp: np.ndarray, f: Finding, others: list[Finding], effects: dict) -> dict:
+def _finding(lin, rp: np.ndarray, f: Finding, others: list[Finding], effects: dict, held_out=heldout) -> dict:
     c = f.tested.candidate
     params = {k: _json(v) for k, v in c.to_params(f.theta).items()}
     effect = c.effect
     if effect == "earth_rotation" and abs(f.theta[0]) > EARTH_IMPLAUSIBLE * EARTH_RATE:
         # a vertical rate Earth cannot make: the isotropic g-sensitivity it is indistinguishable from at rest
         effect, params = "gyro_g_sensitivity", {"G": (float(f.theta[0]) / lin.model.g * np.eye(3)).tolist()}
-    before, after, z = heldout(lin, rp, f, others)
+    before, after, z = held_out(lin, rp, f, others)
     contrib = (f.tested.projected @ f.theta) ** 2
     rows = np.any(c.columns != 0, axis=1)
     where = windows(lin.rows.t[rows], contrib[rows])

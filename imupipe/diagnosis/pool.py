@@ -20,8 +20,10 @@
 ``pooled_candidates`` stacks each session's catalogue columns (``select.candidates``) matched
 by effect, sensor, regime and fixed parameters: one effect, one parameter set across the
 sessions. ``diagnose_pooled`` then runs the single-session statistics (visible fraction,
-score tests, Benjamini-Hochberg forward selection, wild bootstrap, blocked held-out folds: each
-fold holds stretches of every session) on the pooled system.
+score tests, Benjamini-Hochberg forward selection, wild bootstrap) on the pooled system. The
+held-out check is by session from ``BY_SESSION_MIN`` sessions on (``session_heldout``: each
+predicted by what the others fitted), else by the blocked folds, each holding stretches of every
+session (with two, one session alone could not determine an effect only both together show).
 """
 
 from __future__ import annotations
@@ -37,12 +39,17 @@ from .diagnose import catalogue_findings, coverage
 from .evaluate import Evaluation
 from .forward import Globals, Rows
 from .linearised import Linearised
-from .select import BLOCK_S, BOOT_DRAWS, Q_FDR, Candidate, candidates, examine, rigid_walks
+from ..errors import SolverError
+from ..solvers.blocktri import Bordered
+from .select import (BLOCK_S, BOOT_DRAWS, Q_FDR, Candidate, Finding, _sensor_rms, candidates, examine, heldout,
+                     rigid_walks)
 
 PER_SESSION = ("b_a", "b_g")  # the turn-on bias of each power cycle: never shared
 GAP_S = 60.0  # pooled time between two sessions (beyond any window's or block's reach)
 SAME_UNIT_TOL = 0.02  # largest difference of S_a or M_g entries two recordings of one unit show
 SAME_G_TOL = 1e-3  # relative difference of the sessions' local gravity
+BY_SESSION_MIN = 3  # sessions from which a finding is held out by session (two: the other one alone
+# could not determine an effect only the two together show)
 
 
 @dataclass
@@ -61,6 +68,7 @@ class PooledModel:
     W_sample: np.ndarray
     g: float
     shift: np.ndarray  # (S,) s: session s's time 0 in the pooled clock
+    x_common: dict[str, np.ndarray]  # the shared blocks' linearisation point
     row_session: np.ndarray  # (N,) which session each row belongs to
 
 
@@ -82,9 +90,10 @@ def check_one_unit(parts: list[Linearised], names: list[str]) -> None:
                                "pool only sessions recorded at one place")
 
 
-def pool(parts: list[Linearised]) -> Linearised:
+def pool(parts: list[Linearised], x_common: dict[str, np.ndarray] | None = None) -> Linearised:
     """One ``Linearised`` of several sessions' fits (module docstring); ``lin.model`` is a
-    ``PooledModel``."""
+    ``PooledModel``. ``x_common``: the shared blocks' linearisation point (default the sessions'
+    mean)."""
     shared: list[tuple[str, int]] = []
     for lin in parts:
         for name, s in lin.globals.slices.items():
@@ -93,8 +102,8 @@ def pool(parts: list[Linearised]) -> Linearised:
     blocks = shared + [(f"{name}#{i}", parts[i].globals.slices[name].stop - parts[i].globals.slices[name].start)
                        for i in range(len(parts)) for name in PER_SESSION if name in parts[i].globals.slices]
     glob = Globals.build(blocks)
-    x_common = {name: np.mean([lin.x_g[lin.globals.slices[name]] for lin in parts
-                               if name in lin.globals.slices], axis=0) for name, _ in shared}
+    x_common = x_common or {name: np.mean([lin.x_g[lin.globals.slices[name]] for lin in parts
+                                           if name in lin.globals.slices], axis=0) for name, _ in shared}
     x_g = np.zeros(glob.size)
     for name, _ in shared:
         x_g[glob.slices[name]] = x_common[name]
@@ -133,7 +142,7 @@ def pool(parts: list[Linearised]) -> Linearised:
         W_a=np.concatenate([lin.model.W_a for lin in parts]), W_g=np.concatenate([lin.model.W_g for lin in parts]),
         W_sample=np.concatenate([np.broadcast_to(lin.model.W_sample, (len(lin.model.accel.t), 3, 3))
                                  for lin in parts]),
-        g=float(np.mean([lin.model.g for lin in parts])), shift=shift,
+        g=float(np.mean([lin.model.g for lin in parts])), shift=shift, x_common=x_common,
         row_session=np.concatenate([np.full(len(lin.r), i) for i, lin in enumerate(parts)]))
     return Linearised(model, x_g, np.concatenate([lin.x_l for lin in parts]), np.concatenate(r),
                       np.vstack(J_g), sp.block_diag([lin.J_l for lin in parts], format="csr"),
@@ -174,7 +183,9 @@ def diagnose_pooled(evaluations: list[Evaluation], effects: dict, sessions: list
     lin = pool(parts)
     rigid = rigid_walks(lin)
     tested = [examine(lin, c, rigid) for c in pooled_candidates(parts, [ev.frame for ev in evaluations], effects)]
-    _, findings, not_confirmed, _ = catalogue_findings(lin, tested, effects, q)
+    by_session = len(parts) >= BY_SESSION_MIN
+    _, findings, not_confirmed, _ = catalogue_findings(lin, tested, effects, q,
+                                                       session_heldout(parts) if by_session else heldout)
     for f in findings:
         f["windows"], f["window_sessions"] = _session_windows(lin.model, f["windows"], sessions)
     return {"session": " + ".join(sessions), "sessions": sessions, "findings": findings,
@@ -186,7 +197,9 @@ def diagnose_pooled(evaluations: list[Evaluation], effects: dict, sessions: list
                       "the biases (turn-on) and every nuisance per session; score tests (the larger p of "
                       f"chi-square and a wild bootstrap over {BLOCK_S:g}-s time blocks within each session, "
                       f"{BOOT_DRAWS} draws), Benjamini-Hochberg forward selection with a backward check, "
-                      "5-fold blocked cross-validation whose folds hold stretches of every session"}
+                      + ("held out by session: each session predicted from the others' calibration and "
+                         "terms, its own biases and nuisances refitted" if by_session else
+                         "5-fold blocked cross-validation whose folds hold stretches of every session")}
 
 
 def _session_windows(model: PooledModel, wins: list, sessions: list[str]) -> tuple[list, list]:
@@ -197,3 +210,52 @@ def _session_windows(model: PooledModel, wins: list, sessions: list[str]) -> tup
         out.append([a - model.shift[i], b - model.shift[i]])
         names.append(sessions[i])
     return out, names
+
+
+def session_heldout(parts: list[Linearised]):
+    """The held-out check by session (``select.heldout``'s face): each session in turn predicted
+    by the calibration and the terms fitted to the others (one linearised step), its own biases
+    and nuisances refitted to it, without and with the finding's term; the RMS and the paired
+    z over every session's rests and motions (``_sensor_rms``). A session without which the
+    training sessions cannot determine the terms falls back to the blocked folds."""
+
+    def held_out(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]
+                 ) -> tuple[float, float, float]:
+        X = np.hstack([f.tested.candidate.columns for f in others] + [finding.tested.candidate.columns])
+        k_base = X.shape[1] - finding.tested.candidate.columns.shape[1]
+        before, after = np.zeros_like(rp), np.zeros_like(rp)
+        session = lin.model.row_session
+        try:
+            for k in range(len(parts)):
+                rows = session == k
+                before[rows], after[rows] = _predict_session(parts, k, lin.model.x_common, X[~rows], X[rows],
+                                                             k_base)
+        except (np.linalg.LinAlgError, SolverError):
+            return heldout(lin, rp, finding, others)
+        return _sensor_rms(lin, finding, before, after)
+
+    return held_out
+
+
+def _predict_session(parts: list[Linearised], k: int, x_common: dict, X_train: np.ndarray, X_k: np.ndarray,
+                     k_base: int) -> tuple[np.ndarray, np.ndarray]:
+    """Session ``k``'s residual under the shared calibration and the term columns fitted to the
+    other sessions (``X_train``, their rows), its own biases and nuisances (and any shared block
+    the others do not determine) fitted to it: without the last ``k - k_base`` columns and with."""
+    train = pool([p for i, p in enumerate(parts) if i != k], x_common)
+    part = parts[k]
+    out = []
+    for n_cols in (k_base, X_train.shape[1]):
+        J = np.hstack([train.J_g, X_train[:, :n_cols]])
+        step, _ = Bordered(J, train.J_l, train.model.stages.offsets).step(train.r)
+        e, own = part.r.copy(), []
+        for name, s in part.globals.slices.items():
+            if name in PER_SESSION or name not in train.globals.slices:
+                own.append(part.J_g[:, s])
+            else:
+                e += part.J_g[:, s] @ (x_common[name] + step[train.globals.slices[name]] - part.x_g[s])
+        e += X_k[:, :n_cols] @ step[train.J_g.shape[1]:]
+        F = np.hstack(own)
+        d_own, d_l = Bordered(F, part.J_l, part.model.stages.offsets).step(e)
+        out.append(e + F @ d_own + part.J_l @ d_l)
+    return out[0], out[1]
