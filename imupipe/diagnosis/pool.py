@@ -34,13 +34,12 @@ from types import SimpleNamespace
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import ImupipeError
+from ..errors import ImupipeError, SolverError
+from ..solvers.blocktri import Bordered
 from .diagnose import catalogue_findings, coverage
 from .evaluate import Evaluation
 from .forward import Globals, Rows
 from .linearised import Linearised
-from ..errors import SolverError
-from ..solvers.blocktri import Bordered
 from .select import (BLOCK_S, BOOT_DRAWS, Q_FDR, Candidate, Finding, _sensor_rms, candidates, examine, heldout,
                      rigid_walks)
 
@@ -132,12 +131,13 @@ def pool(parts: list[Linearised], x_common: dict[str, np.ndarray] | None = None)
                 np.concatenate([lin.rows.axis for lin in parts]),
                 np.concatenate([np.where(np.isfinite(lin.rows.t), lin.rows.t, 0.0) + shift[i]
                                 for i, lin in enumerate(parts)]))
-    n = np.cumsum([0] + [lin.model.n for lin in parts])
     m = np.cumsum([0] + [lin.model.m for lin in parts])
+    # motions numbered across the sessions: the rests' and motions' group ids (``raw_units``,
+    # ``_fold_of_rows``: rests 0..n-1, then n + motion) stay distinct
     motion = np.concatenate([lin.model.accel.motion + m[i] for i, lin in enumerate(parts)])
-    # the motion samples' group ids (``raw_units``: rests 0..n-1, then n + motion) stay distinct
     model = PooledModel(
-        rows=rows, glob=glob, stages=SimpleNamespace(offsets=offsets, size=int(offsets[-1])), n=int(n[-1]),
+        rows=rows, glob=glob, stages=SimpleNamespace(offsets=offsets, size=int(offsets[-1])),
+        n=sum(lin.model.n for lin in parts),
         accel=SimpleNamespace(motion=motion),
         W_a=np.concatenate([lin.model.W_a for lin in parts]), W_g=np.concatenate([lin.model.W_g for lin in parts]),
         W_sample=np.concatenate([np.broadcast_to(lin.model.W_sample, (len(lin.model.accel.t), 3, 3))
@@ -241,7 +241,7 @@ def _predict_session(parts: list[Linearised], k: int, x_common: dict, X_train: n
                      k_base: int) -> tuple[np.ndarray, np.ndarray]:
     """Session ``k``'s residual under the shared calibration and the term columns fitted to the
     other sessions (``X_train``, their rows), its own biases and nuisances (and any shared block
-    the others do not determine) fitted to it: without the last ``k - k_base`` columns and with."""
+    the others do not determine) fitted to it: with the term columns up to ``k_base`` and with all."""
     train = pool([p for i, p in enumerate(parts) if i != k], x_common)
     part = parts[k]
     out = []
