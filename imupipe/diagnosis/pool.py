@@ -35,7 +35,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import ImupipeError, SolverError
+from ..models import TriadCalibration
+from ..observations import Rests
 from ..solvers.blocktri import Bordered
+from ..solvers.brownian import estimate_intensity
+from ..solvers.joint_ml import _dT
 from .diagnose import catalogue_findings, coverage
 from .evaluate import Evaluation
 from .forward import Globals, Rows
@@ -259,3 +263,54 @@ def _predict_session(parts: list[Linearised], k: int, x_common: dict, X_train: n
         d_own, d_l = Bordered(F, part.J_l, part.model.stages.offsets).step(e)
         out.append(e + F @ d_own + part.J_l @ d_l)
     return out[0], out[1]
+
+
+def pooled_walks(rests: list[Rests], accel: list[TriadCalibration], gyro: list[TriadCalibration],
+                 gravity: float) -> tuple[float, float]:
+    """The accelerometer's and the gyro's bias random-walk intensities (REML, ``brownian``) from
+    every session's rests with one temperature coefficient ``k`` (each session's levels, gravity
+    directions and accelerometer calibration profiled on their own). A walk that one session's own
+    ``k`` takes up (in a warm-up the temperature rises monotonically, like a drift, so a single
+    session's estimate may miss the walk) shows here as the sessions' ``k`` disagreeing: left out
+    of the pooled model, it would pass for a temperature curvature."""
+    t_start, t_end, offset = [], [], 0.0
+    for R in rests:  # one clock; the per-session levels cut the walk between sessions
+        t_start.append(R.t_start_s + offset - R.t_start_s[0])
+        t_end.append(R.t_end_s + offset - R.t_start_s[0])
+        offset = t_end[-1][-1] + GAP_S
+    t_start, t_end = np.concatenate(t_start), np.concatenate(t_end)
+    own, shared, r, var, H = [], [], [], [], []
+    for R, g in zip(rests, gyro):
+        dT = _dT(R)
+        a = R.need("accel")
+        r.append(R.need("gyro") - g.b0 - np.outer(dT, gyro[0].k))
+        own.append(np.column_stack([np.ones(len(R)), a / np.linalg.norm(a, axis=1, keepdims=True)]))
+        shared.append(dT[:, None])
+        var.append(np.diagonal(R.cov_of_mean("gyro"), axis1=1, axis2=2))
+    X = np.hstack([sp.block_diag(own).toarray(), np.vstack(shared)])
+    q_g, _ = estimate_intensity(t_start, t_end, np.vstack(r), np.vstack(var), X)
+    own, shared, r, var = [], [], [], []
+    for R, cal in zip(rests, accel):
+        dT = _dT(R)
+        y = R.need("accel")
+
+        def norm_error(theta: np.ndarray) -> np.ndarray:
+            M, b, k = theta[:9].reshape(3, 3), theta[9:12], theta[12:]
+            return np.linalg.norm((y - b - np.outer(dT, k)) @ M.T, axis=1) - gravity
+
+        theta = np.concatenate([cal.M.ravel(), cal.b0, accel[0].k])
+        r.append(norm_error(theta))
+        D = np.empty((len(y), len(theta)))
+        for c in range(len(theta)):  # what the accelerometer's own fit (M, b) and the shared k absorb
+            h = 1e-7 * max(1.0, abs(theta[c]))
+            step = h * np.eye(len(theta))[c]
+            D[:, c] = (norm_error(theta + step) - norm_error(theta - step)) / (2 * h)
+        own.append(D[:, :12])
+        shared.append(D[:, 12:])
+        x = (y - cal.b0 - np.outer(dT, accel[0].k)) @ cal.M.T
+        H.append((x / np.linalg.norm(x, axis=1, keepdims=True)) @ cal.M)  # the walk seen along gravity
+        var.append(np.einsum("ni,nij,nj->n", H[-1], R.cov_of_mean("accel"), H[-1]))
+    X = np.hstack([sp.block_diag(own).toarray(), np.vstack(shared)])
+    q_a, _ = estimate_intensity(t_start, t_end, np.concatenate(r)[:, None], np.concatenate(var)[:, None], X,
+                                np.vstack(H))
+    return q_a, q_g

@@ -14,6 +14,8 @@ import json
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import ImupipeError
 from ..ingest import read_recording
 from ..io import write_text
@@ -56,26 +58,30 @@ def diagnose_sessions(sessions: Sequence[Path], pipeline: Path | None = None, ou
     written = run_sessions(sessions, pipeline, out, quiet, registry=registry, overrides=overrides, diagnose=True)
     ids = session_ids(sessions)
     cache = Cache(under(Path(out), CACHE_DIR))
-    evaluations = []
+    inputs = []
     with progress(quiet) as p:
         task = p.add_task("pooling", total=len(sessions) + 1)
         for session, sid in zip(sessions, ids, strict=True):
             run = run_session(session, spec, registry, cache, under(Path(out), sid) / MANIFEST)  # cached
-            inputs = {}
+            inputs.append({})
             for port, ref in node.inputs.items():
                 if ref.is_session:
                     if ref.port in run.source.names():
-                        inputs[port] = run.source.table(ref.port)
+                        inputs[-1][port] = run.source.table(ref.port)
                 elif (table := run.table(ref)) is not None:
-                    inputs[port] = table
+                    inputs[-1][port] = table
+        walks = _walks(inputs, node.params)
+        evaluations = []
+        for session, one, walk in zip(sessions, inputs, walks, strict=True):
             try:
-                evaluations.append(evaluation(inputs, node.params))
+                evaluations.append(evaluation(one, node.params, walk))
             except ImupipeError as exc:
                 raise ImupipeError(f"{session}: {exc}") from exc
             p.advance(task)
         effects = {name: registry.get("effects", name) for name in registry.names("effects")}
         doc = diagnose_pooled(evaluations, effects, ids, q=node.params.fdr_q, files=[str(s) for s in sessions])
         doc["session_files"] = [str(s) for s in sessions]
+        doc["bias_walks"] = {sid: {"q_accel": list(a), "q_gyro": list(g)} for sid, (a, g) in zip(ids, walks)}
         doc["single_session"] = _single_session(Path(out), ids, doc)
         p.advance(task)
     folder = under(Path(out), pooled_folder(ids))
@@ -96,6 +102,22 @@ def _check_sensors(sessions: list[Path], spec: Pipeline, registry: Registry) -> 
             raise ImupipeError(f"{session}: records {', '.join(triads)}, {sessions[0]} {', '.join(first)}: "
                                "not recordings of one unit; pool only sessions of the same sensors")
         first = first or triads
+
+
+def _walks(inputs: list[dict], params) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each session's bias-walk intensities for the pooled model: its own, or the pooled estimate
+    (``diagnosis.pool.pooled_walks``: one k for all) where that is larger."""
+    from ..diagnosis.pool import pooled_walks
+    from ..models import Calibration
+    from ..observations import Rests
+    from ..stages.refine import STANDARD_GRAVITY
+    from ..stages.residuals import walk_intensities
+
+    cals = [Calibration.from_tables(one["calibration"]) for one in inputs]
+    g = params.g_m_s2 or float(cals[0]["gyro"].details.get("joint", {}).get("gravity_m_s2", STANDARD_GRAVITY))
+    q_a, q_g = pooled_walks([Rests.from_table(one["rests"]) for one in inputs], [c["accel"] for c in cals],
+                            [c["gyro"] for c in cals], g)
+    return [(np.maximum(a, q_a), np.maximum(b, q_g)) for a, b in map(walk_intensities, cals)]
 
 
 def _diagnose_node(spec: Pipeline) -> Node:
