@@ -32,7 +32,7 @@ def _session(folder: Path, unit, die_C: float, seed: int, effects: dict) -> Path
     imu = unit.model_copy(update={"thermal": unit.thermal.model_copy(
         update={"ambient_C": die_C - unit.thermal.self_heating_C, "initial_C": die_C})})
     rec, _ = simulate_recording("gimbal", effects, seed, imu=imu, env={"gravity_m_s2": 9.80665},
-                                grid_deg=60.0, n_rotations=10, rest_s=2.5)
+                                grid_deg=60.0, n_rotations=6, rest_s=2.0)
     path = folder / f"unit-{die_C:g}C-{'-'.join(effects) or 'null'}.csv"
     write_csv(path, rec)
     return path
