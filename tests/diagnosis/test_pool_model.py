@@ -12,13 +12,16 @@ from forward_synth import G, noise_free_imu, rests_from_truth, small_gimbal
 from imupipe.diagnosis.evaluate import Evaluation
 from imupipe.diagnosis.forward import JointModel, MotionAccel, Noise, Start
 from imupipe.diagnosis.linearised import fit
-from imupipe.diagnosis.pool import check_one_unit, diagnose_pooled, pool
+from imupipe.diagnosis.pool import check_one_unit, diagnose_pooled, pool, pooled_walks
 from imupipe.diagnosis.select import time_blocks
 from imupipe.errors import ImupipeError
-from imupipe.sim.api import known_effects
+from imupipe.sim.api import known_effects, simulate_arrays
+from imupipe.sim.sensor import default_imu
+from imupipe.solvers.joint_ml import gyro_walk_intensity
 
 PPM = [300.0, -200.0, 100.0]  # ppm/degC
 TEMPERATURES = (5.0, 25.0, 45.0)
+GYRO_RW = 1e-6  # rad/s/sqrt(s)
 
 
 def _fitted(die_C: float, effects: dict | None, seed: int = 3):
@@ -37,10 +40,14 @@ def _fitted(die_C: float, effects: dict | None, seed: int = 3):
 
 
 def _with(seed, imu, effects):
-    from imupipe.sim.api import simulate_arrays
-
     return simulate_arrays("gimbal", effects, seed, imu=imu, env={"gravity_m_s2": G},
                            grid_deg=60.0, rest_s=2.0, step_s=1.5, n_rotations=6, rotation_s=2.0)
+
+
+def _consumer_unit(seed: int):
+    """The simulator's consumer-MEMS unit (noise, quantisation, turn-on bias) with a gyro bias walk."""
+    imu = default_imu(np.random.default_rng([seed, 2]))
+    return imu.model_copy(update={"gyro": imu.gyro.model_copy(update={"bias_rw": GYRO_RW})})
 
 
 @pytest.fixture(scope="module")
@@ -100,3 +107,19 @@ def test_a_scale_temperature_no_session_sees_is_named_and_held_out_by_session():
     np.testing.assert_allclose(f["parameters"]["ppm_per_C"], PPM, atol=0.5)  # noise-free: 0.07 measured
     assert f["heldout_rms_after"] < 0.2 * f["heldout_rms_before"] and f["heldout_z"] > 1.645
     assert set(f["window_sessions"]) <= {"a", "c"}  # at 25 degC the term is zero
+
+
+def test_a_gyro_walk_each_warm_up_hides_in_its_k_is_found_with_one_k():
+    # in a warm-up the temperature rises like a drift: each session's own k takes up the walk
+    unit = _consumer_unit(0)
+    rests, cals = [], []
+    for k, ambient in enumerate((5.0, 35.0)):
+        imu = unit.model_copy(update={"thermal": unit.thermal.model_copy(update={"ambient_C": ambient,
+                                                                                  "initial_C": ambient})})
+        out, truth = simulate_arrays("gimbal", {}, k, imu=imu, env={"gravity_m_s2": G}, grid_deg=45.0,
+                                     n_rotations=30, rest_s=3.0)
+        rests.append(rests_from_truth(out, truth)[0])
+        cals.append(truth.calibration)
+    assert [gyro_walk_intensity(r, c["gyro"], True, None)[0][0] for r, c in zip(rests, cals)] == [0.0, 0.0]
+    _, q_g = pooled_walks(rests, [c["accel"] for c in cals], [c["gyro"] for c in cals], G)
+    assert GYRO_RW**2 / 10 < q_g < GYRO_RW**2 * 10
