@@ -134,12 +134,17 @@ def _single_session(out: Path, ids: list[str], doc: dict) -> dict:
     for sid in ids:
         path = out / sid / "diagnosis.json"
         own = json.loads(path.read_text()) if path.exists() else {"findings": [], "tested": []}
-        visible: dict[str, float] = {}
-        for t in own["tested"]:
-            key = f"{t['effect']}/{t['sensor']}"
-            visible[key] = max(visible.get(key, 0.0), t["visible_fraction"])
-        single[sid] = {"findings": [f["effect"] for f in own["findings"]], "visible_fraction": visible}
+        single[sid] = {"findings": [f["effect"] for f in own["findings"]], "visible_fraction": _visible(own)}
     return single
+
+
+def _visible(doc: dict) -> dict[str, float]:
+    """``effect/sensor`` -> the largest visible fraction of its tested terms."""
+    out: dict[str, float] = {}
+    for t in doc["tested"]:
+        key = f"{t['effect']}/{t['sensor']}"
+        out[key] = max(out.get(key, 0.0), t["visible_fraction"])
+    return out
 
 
 def report_lines(doc: dict) -> list[str]:
@@ -153,14 +158,10 @@ def report_lines(doc: dict) -> list[str]:
                   f"{', '.join(doc['per_session'])} and every nuisance (gravity directions, bias walks, "
                   "attitude paths).", ""]
     lines += diagnosis_lines(doc)
-    pooled_visible: dict[str, float] = {}
-    for t in doc["tested"]:
-        key = f"{t['effect']}/{t['sensor']}"
-        pooled_visible[key] = max(pooled_visible.get(key, 0.0), t["visible_fraction"])
     lines += ["## Visible fraction: each session alone and pooled", "",
               "| effect/sensor | " + " | ".join(doc["sessions"]) + " | pooled |",
               "|---" * (len(doc["sessions"]) + 2) + "|"]
-    for key, v in pooled_visible.items():
+    for key, v in _visible(doc).items():
         own = [doc["single_session"][s]["visible_fraction"].get(key) for s in doc["sessions"]]
         lines.append(f"| {key} | " + " | ".join("-" if x is None else f"{x:.3f}" for x in own) + f" | {v:.3f} |")
     return lines + [""]
