@@ -153,10 +153,11 @@ def pool(parts: list[Linearised], x_common: dict[str, np.ndarray] | None = None)
                       max(lin.iterations for lin in parts), all(lin.converged for lin in parts))
 
 
-def pooled_candidates(parts: list[Linearised], frames: list[np.ndarray], effects: dict) -> list[Candidate]:
+def pooled_candidates(parts: list[Linearised], frames: list[np.ndarray], effects: dict
+                      ) -> list[tuple[Candidate, list[Candidate | None]]]:
     """Each session's catalogue columns stacked, matched by effect, sensor, regime and fixed
-    parameters (zero on a session that has no rows the term acts on); the first session's frame
-    names the parameters."""
+    parameters (zero on a session that has no rows the term acts on), with each session's own
+    candidate (None where it has none); the first session's frame names the parameters."""
     per = [{_key(c): c for c in candidates(lin, Q, effects)} for lin, Q in zip(parts, frames)]
     keys = list(dict.fromkeys(k for p in per for k in p))
     out = []
@@ -164,8 +165,8 @@ def pooled_candidates(parts: list[Linearised], frames: list[np.ndarray], effects
         first = next(p[key] for p in per if key in p)
         cols = [p[key].columns if key in p else np.zeros((len(lin.r), first.columns.shape[1]))
                 for p, lin in zip(per, parts)]
-        out.append(Candidate(first.effect, first.sensor, first.regime, first.names, np.vstack(cols),
-                             first.to_params, first.extra_dof, first.fixed))
+        out.append((Candidate(first.effect, first.sensor, first.regime, first.names, np.vstack(cols),
+                              first.to_params, first.extra_dof, first.fixed), [p.get(key) for p in per]))
     return out
 
 
@@ -185,8 +186,15 @@ def diagnose_pooled(evaluations: list[Evaluation], effects: dict, sessions: list
     parts = [ev.lin for ev in evaluations]
     check_one_unit(parts, files or sessions)
     lin = pool(parts)
-    rigid = rigid_walks(lin)
-    tested = [examine(lin, c, rigid) for c in pooled_candidates(parts, [ev.frame for ev in evaluations], effects)]
+    rigid, rigid_own = rigid_walks(lin), [rigid_walks(p) for p in parts]
+    tested = []
+    for c, own in pooled_candidates(parts, [ev.frame for ev in evaluations], effects):
+        tested.append(examine(lin, c, rigid))
+        # the pooled fraction is diluted by a session whose own parameters absorb the term whole (at
+        # a constant temperature, a temperature term is a constant its bias takes); the pooled system
+        # sees, along every direction, at least what any session alone sees of it
+        tested[-1].visible = max([tested[-1].visible] + [examine(p, o, r).visible for p, o, r
+                                                         in zip(parts, own, rigid_own) if o is not None])
     by_session = len(parts) >= BY_SESSION_MIN
     _, findings, not_confirmed, _ = catalogue_findings(lin, tested, effects, q,
                                                        session_heldout(parts) if by_session else heldout)

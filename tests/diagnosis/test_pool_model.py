@@ -13,7 +13,7 @@ from imupipe.diagnosis.evaluate import Evaluation
 from imupipe.diagnosis.forward import JointModel, MotionAccel, Noise, Start
 from imupipe.diagnosis.linearised import fit
 from imupipe.diagnosis.pool import check_one_unit, diagnose_pooled, pool, pooled_walks
-from imupipe.diagnosis.select import time_blocks
+from imupipe.diagnosis.select import VISIBLE_MIN, candidates, examine, rigid_walks, time_blocks
 from imupipe.errors import ImupipeError
 from imupipe.sim.api import known_effects, simulate_arrays
 from imupipe.sim.sensor import default_imu
@@ -24,10 +24,13 @@ TEMPERATURES = (5.0, 25.0, 45.0)
 GYRO_RW = 1e-6  # rad/s/sqrt(s)
 
 
-def _fitted(die_C: float, effects: dict | None, seed: int = 3):
-    """A noise-free gimbal session of one unit with its die held at ``die_C``, fitted."""
+def _fitted(die_C: float, effects: dict | None, seed: int = 3, warming: bool = False):
+    """A noise-free gimbal session of one unit with its die held at ``die_C`` (``warming``: from
+    ``die_C``, heating by several degC in a minute, its k fitted), fitted."""
     imu = noise_free_imu(3)
     imu["thermal"] = {"readout_quantum_C": 0.0, "ambient_C": die_C - 20.0, "initial_C": die_C}
+    if warming:
+        imu["thermal"] = {"readout_quantum_C": 0.0, "ambient_C": die_C, "self_heating_C": 40.0, "tau_s": 60.0}
     out, truth = small_gimbal(seed, imu) if not effects else _with(seed, imu, effects)
     rests, turns = rests_from_truth(out, truth)
     cal = truth.calibration
@@ -35,7 +38,7 @@ def _fitted(die_C: float, effects: dict | None, seed: int = 3):
                   cal["accel"].k, cal["gyro"].k)
     noise = Noise(np.eye(3) * 5e-3**2, np.eye(3) * 3.5e-4**2, np.full(3, 1e-9), np.full(3, 1e-10))
     acc = MotionAccel.select(out.t, out.raw["accel"], rests, turns)
-    model = JointModel(rests, turns, G, start, noise, accel=acc, temperature=(out.t, out.temperature))
+    model = JointModel(rests, turns, G, start, noise, fit_k=warming, accel=acc, temperature=(out.t, out.temperature))
     return fit(model, max_iter=5)
 
 
@@ -96,6 +99,20 @@ def test_three_null_sessions_give_no_finding(nulls):
     doc = diagnose_pooled([Evaluation(lin, np.eye(3), None) for lin in nulls], known_effects(), ["a", "b", "c"])
     assert doc["findings"] == [] and doc["sessions"] == ["a", "b", "c"]
     assert "held out by session" in doc["method"]
+
+
+def test_what_one_session_sees_stays_visible_beside_a_session_that_absorbs_it(nulls):
+    # at 45 degC a temperature curvature is a constant the session's bias takes: in the pooled
+    # columns it would dilute the fraction the warming session shows
+    warm = _fitted(25.0, None, warming=True)
+    doc = diagnose_pooled([Evaluation(lin, np.eye(3), None) for lin in (warm, nulls[2])], known_effects(),
+                          ["warm", "hot"])
+    visible = {(t["effect"], t["sensor"]): t["visible_fraction"] for t in doc["tested"]}
+    rigid = rigid_walks(warm)
+    alone = {(c.effect, c.sensor): examine(warm, c, rigid).visible for c in candidates(warm, np.eye(3), known_effects())}
+    for key in (("bias_temperature_nonlinear", "gyro"), ("bias_temperature_nonlinear", "accel")):
+        assert alone[key] >= VISIBLE_MIN and visible[key] >= alone[key]
+    assert doc["findings"] == [] and doc["shared"] == ["S_a", "M_g", "k_a", "k_g"]
 
 
 def test_a_scale_temperature_no_session_sees_is_named_and_held_out_by_session():
