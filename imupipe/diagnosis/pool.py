@@ -19,11 +19,13 @@
 
 ``pooled_candidates`` stacks each session's catalogue columns (``select.candidates``) matched
 by effect, sensor, regime and fixed parameters: one effect, one parameter set across the
-sessions. ``diagnose_pooled`` then runs the single-session statistics (visible fraction,
-score tests, Benjamini-Hochberg forward selection, wild bootstrap) on the pooled system. The
-held-out check is by session from ``BY_SESSION_MIN`` sessions on (``session_heldout``: each
-predicted by what the others fitted), else by the blocked folds, each holding stretches of every
-session (with two, one session alone could not determine an effect only both together show).
+sessions. ``diagnose_pooled`` then runs the single-session statistics (visible fraction, at
+least any one session's own; score tests, Benjamini-Hochberg forward selection, wild bootstrap)
+on the pooled system. The held-out check is by session from ``BY_SESSION_MIN`` sessions on
+(``session_heldout``: each predicted by what the others fitted), else by the blocked folds, each
+holding stretches of every session (with two, one session alone could not determine an effect
+only both together show). ``pooled_walks`` estimates the bias walks from all sessions with one
+``k``: the pooled model's nuisances (``pipeline/pooled.py`` evaluates each session with them).
 """
 
 from __future__ import annotations
