@@ -68,8 +68,9 @@ def _parser() -> argparse.ArgumentParser:
     common(sp)
 
     sp = sub.add_parser("diagnose", help="say which physics the calibrated model leaves out, fit it, "
-                                         "check it on held-out data")
-    sp.add_argument("session", type=Path, metavar="SESSION")
+                                         "check it on held-out data; several sessions of one unit are "
+                                         "also diagnosed pooled (DIR/pooled/)")
+    sp.add_argument("sessions", type=Path, nargs="+", metavar="SESSION")
     pipeline_options(sp)  # a pipeline with a map_residuals stage (default: the built-in one)
     sp.add_argument("--out", type=Path, default=Path("imupipe-out"))
     strict(sp)
@@ -224,25 +225,32 @@ def _cmd_diagnose(args) -> int:
     import json
 
     from .pipeline.api import run_sessions
-
-    written = run_sessions([args.session], pipeline=args.pipeline, out=args.out, quiet=args.quiet,
-                           diagnose=True, overrides=_overrides(args))
-    folder = written[0].parent if written else None
-    path = folder / "diagnosis.json" if folder else None
-    if path is None or not path.exists():
-        print(f"imupipe diagnose: error: {args.session}: no diagnosis was written", file=sys.stderr)
-        return 1
-    doc = json.loads(path.read_text())
-    for f in doc["findings"]:
-        print(f"{f['effect']} ({f['sensor']}, {f['regime']}): {f['explanation']}")
-    if not doc["findings"]:
-        print("no finding: the calibrated model explains the recording")
-    print(path)
     from .verdict import read_verdict, strict_failure, verdict_lines
 
-    verdict = read_verdict(written[0])
-    print("\n".join(verdict_lines(verdict)))
-    return 3 if args.strict and strict_failure([verdict]) else 0
+    pooled = None
+    if len({p.resolve() for p in args.sessions}) > 1:
+        from .pipeline.pooled import diagnose_sessions
+
+        written, pooled = diagnose_sessions(args.sessions, pipeline=args.pipeline, out=args.out, quiet=args.quiet,
+                                            overrides=_overrides(args))
+    else:
+        written = run_sessions(args.sessions[:1], pipeline=args.pipeline, out=args.out, quiet=args.quiet,
+                               diagnose=True, overrides=_overrides(args))
+    paths = [w.parent / "diagnosis.json" for w in written]
+    if not paths or not all(p.exists() for p in paths):
+        print(f"imupipe diagnose: error: {args.sessions[0]}: no diagnosis was written", file=sys.stderr)
+        return 1
+    for path in paths + ([pooled] if pooled else []):
+        doc = json.loads(path.read_text())
+        for f in doc["findings"]:
+            print(f"{f['effect']} ({f['sensor']}, {f['regime']}): {f['explanation']}")
+        if not doc["findings"]:
+            print("no finding: the calibrated model explains the recording" + ("s together" if path == pooled else ""))
+        print(path)
+    verdicts = [read_verdict(w) for w in written]
+    for verdict in verdicts:
+        print("\n".join(verdict_lines(verdict)))
+    return 3 if args.strict and strict_failure(verdicts) else 0
 
 
 def _cmd_batch(args) -> int:

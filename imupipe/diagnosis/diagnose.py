@@ -28,21 +28,7 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
     lin = ev.lin
     rigid = rigid_walks(lin)
     tested = [examine(lin, c, rigid) for c in candidates(lin, ev.frame, effects)]
-    rp, accepted = select(lin, tested, q)
-    findings, not_confirmed, kept = [], [], []
-    for i, f in enumerate(accepted):
-        doc = _finding(lin, rp, f, accepted[:i] + accepted[i + 1:], effects)
-        rejects = f.tested.candidate.rejects
-        unphysical = rejects(f.theta) if rejects else None  # e.g. a thermal lag the read-out makes
-        if not unphysical and doc["heldout_rms_after"] < doc["heldout_rms_before"] and doc["heldout_z"] >= HELDOUT_Z:
-            findings.append(doc)
-            kept.append(f)
-        else:  # significant on the data it was fitted to, not better on data it was not: not stood behind
-            not_confirmed.append({"effect": doc["effect"], "sensor": doc["sensor"], "regime": doc["regime"],
-                                  "parameters": doc["parameters"], "significance": doc["significance"],
-                                  "reason": unphysical or
-                                  f"held-out RMS did not improve significantly ({doc['heldout_rms_before']:.4g} "
-                                  f"-> {doc['heldout_rms_after']:.4g}, z = {doc['heldout_z']:.2f} < {HELDOUT_Z})"})
+    rp, findings, not_confirmed, kept = catalogue_findings(lin, tested, effects, q)
     # structure the accepted terms leave: the generic library tested conditionally on them
     given = np.hstack([f.tested.projected for f in kept]) if kept else None
     left = structure_cells(lin, given, rp, bootstrap=True)
@@ -59,6 +45,39 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
             continue
         findings.append(_unknown(cell))
         covered.add((cell["sensor"], cell["regime"]))
+    return {"session": session, "findings": findings, **coverage(tested, effects), "not_confirmed": not_confirmed,
+            "fdr_q": q,
+            "method": "score tests against the fitted per-sample model (the larger p of chi-square and a wild "
+                      f"bootstrap over {BLOCK_S:g}-s time blocks, {BOOT_DRAWS} draws), "
+                      "Benjamini-Hochberg forward selection with a backward check, 5-fold blocked "
+                      "cross-validation by rest and motion"}
+
+
+def catalogue_findings(lin, tested: list, effects: dict, q: float = Q_FDR, held_out=heldout
+                       ) -> tuple[np.ndarray, list[dict], list[dict], list[Finding]]:
+    """The selected catalogue terms (``select``) that also predict held-out data better
+    (``held_out(lin, rp, finding, others)``: RMS before, after, z): ``(rp, findings,
+    not_confirmed, kept)``, ``rp`` the residual with the nominal model refitted."""
+    rp, accepted = select(lin, tested, q)
+    findings, not_confirmed, kept = [], [], []
+    for i, f in enumerate(accepted):
+        doc = _finding(lin, rp, f, accepted[:i] + accepted[i + 1:], effects, held_out)
+        rejects = f.tested.candidate.rejects
+        unphysical = rejects(f.theta) if rejects else None  # e.g. a thermal lag the read-out makes
+        if not unphysical and doc["heldout_rms_after"] < doc["heldout_rms_before"] and doc["heldout_z"] >= HELDOUT_Z:
+            findings.append(doc)
+            kept.append(f)
+        else:  # significant on the data it was fitted to, not better on data it was not: not stood behind
+            not_confirmed.append({"effect": doc["effect"], "sensor": doc["sensor"], "regime": doc["regime"],
+                                  "parameters": doc["parameters"], "significance": doc["significance"],
+                                  "reason": unphysical or
+                                  f"held-out RMS did not improve significantly ({doc['heldout_rms_before']:.4g} "
+                                  f"-> {doc['heldout_rms_after']:.4g}, z = {doc['heldout_z']:.2f} < {HELDOUT_Z})"})
+    return rp, findings, not_confirmed, kept
+
+
+def coverage(tested: list, effects: dict) -> dict:
+    """``not_identifiable``, ``tested`` and ``untested`` of diagnosis.json."""
     seen = {(t.candidate.effect, t.candidate.sensor) for t in tested if t.visible >= VISIBLE_MIN}
     not_identifiable = []
     for t in tested:
@@ -83,15 +102,10 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
     untested = [{"effect": e, "reason": why} for e, why in UNTESTED.items() if e in effects and e not in present]
     untested += [{"effect": e, "reason": "this recording has no rows its term acts on"}
                  for e in ("lever_arm", "accel_gyro_time_offset") if e in effects and e not in present]
-    return {"session": session, "findings": findings, "not_identifiable": not_identifiable,
-            "not_confirmed": not_confirmed, "tested": tested_doc, "untested": untested, "fdr_q": q,
-            "method": "score tests against the fitted per-sample model (the larger p of chi-square and a wild "
-                      f"bootstrap over {BLOCK_S:g}-s time blocks, {BOOT_DRAWS} draws), "
-                      "Benjamini-Hochberg forward selection with a backward check, 5-fold blocked "
-                      "cross-validation by rest and motion"}
+    return {"not_identifiable": not_identifiable, "tested": tested_doc, "untested": untested}
 
 
-def _finding(lin, rp: np.ndarray, f: Finding, others: list[Finding], effects: dict) -> dict:
+def _finding(lin, rp: np.ndarray, f: Finding, others: list[Finding], effects: dict, held_out=heldout) -> dict:
     c = f.tested.candidate
     effect = c.effect
     if effect == "earth_rotation" and abs(f.theta[0]) > EARTH_IMPLAUSIBLE * EARTH_RATE:
@@ -103,7 +117,7 @@ def _finding(lin, rp: np.ndarray, f: Finding, others: list[Finding], effects: di
     else:
         to_params = c.to_params
     params = {k: _json(v) for k, v in to_params(f.theta).items()}
-    before, after, z = heldout(lin, rp, f, others)
+    before, after, z = held_out(lin, rp, f, others)
     contrib = (f.tested.projected @ f.theta) ** 2
     rows = np.any(c.columns != 0, axis=1)
     where = windows(lin.rows.t[rows], contrib[rows])

@@ -599,7 +599,8 @@ def raw_units(lin: Linearised, r: np.ndarray) -> dict[str, tuple[np.ndarray, np.
     ra, rg, rm = _rows3(lin, "accel_rest"), _rows3(lin, "gyro_rest"), _rows3(lin, "accel_motion")
     n = model.n
     e_a = np.linalg.solve(model.W_a, r[ra][:, :, None])[:, :, 0]
-    e_m = np.linalg.solve(model.W_sample, r[rm].T).T if len(rm) else np.zeros((0, 3))
+    W_m = np.broadcast_to(model.W_sample, (len(rm), 3, 3))  # one whitener, or one per sample (pooled)
+    e_m = np.linalg.solve(W_m, r[rm][:, :, None])[:, :, 0]
     out["accel"] = (np.vstack([e_a, e_m]), np.r_[np.arange(n), n + model.accel.motion], np.vstack([r[ra], r[rm]]))
     out["gyro"] = (np.linalg.solve(model.W_g, r[rg][:, :, None])[:, :, 0], np.arange(n), r[rg])
     return out

@@ -58,8 +58,18 @@ def _events(table: pa.Table | None) -> list[Event]:
     return out
 
 
-def evaluation(inputs: Mapping[str, pa.Table], params: MapParams) -> Evaluation:
-    """The per-sample model of the session under the input calibration (held fixed)."""
+def walk_intensities(cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
+    """(3,) and (3,): the accelerometer's and the gyro's bias random-walk intensities the joint
+    refinement fitted (zeros without one)."""
+    joint = cal["gyro"].details.get("joint", {})
+    return (np.asarray(joint.get("accel_bias_walk", {}).get("q", [0.0] * 3), float),
+            np.asarray(joint.get("gyro_bias_walk", {}).get("q", [0.0] * 3), float))
+
+
+def evaluation(inputs: Mapping[str, pa.Table], params: MapParams,
+               walks: tuple[np.ndarray, np.ndarray] | None = None) -> Evaluation:
+    """The per-sample model of the session under the input calibration (held fixed); ``walks``:
+    the bias walks' intensities ``(q_a, q_g)`` instead of the calibration's (a pooled estimate)."""
     from ..diagnosis.evaluate import evaluate
 
     rests = Rests.from_table(inputs["rests"])
@@ -67,8 +77,7 @@ def evaluation(inputs: Mapping[str, pa.Table], params: MapParams) -> Evaluation:
     cal = Calibration.from_tables(inputs["calibration"])
     accel, gyro = cal["accel"], cal["gyro"]
     joint = gyro.details.get("joint", {})
-    q_g = np.asarray(joint.get("gyro_bias_walk", {}).get("q", [0.0] * 3), float)
-    q_a = np.asarray(joint.get("accel_bias_walk", {}).get("q", [0.0] * 3), float)
+    q_a, q_g = walks if walks is not None else walk_intensities(cal)
     g = params.g_m_s2 or float(joint.get("gravity_m_s2", STANDARD_GRAVITY))
     streams = {}
     for s in ("accel", "gyro"):
