@@ -68,7 +68,7 @@ def small_gimbal(seed: int, imu: dict, **kw):
     return simulate_arrays("gimbal", None, seed, imu=imu, env={"gravity_m_s2": G}, **params)
 
 
-def joint_model(out, truth):
+def joint_model(out, truth, fit_k: bool = True):
     """The per-sample model of a simulated session, started at its true calibration, with its rests,
     turns and accelerometer samples (tests of the diagnosis)."""
     rests, turns = rests_from_truth(out, truth)
@@ -77,5 +77,5 @@ def joint_model(out, truth):
                   cal["accel"].k, cal["gyro"].k)
     noise = Noise(np.eye(3) * 5e-3**2, np.eye(3) * 3.5e-4**2, np.full(3, 1e-9), np.full(3, 1e-10))
     acc = MotionAccel.select(out.t, out.raw["accel"], rests, turns)
-    return JointModel(rests, turns, G, start, noise, fit_k=True, accel=acc,
+    return JointModel(rests, turns, G, start, noise, fit_k=fit_k, accel=acc,
                       temperature=(out.t, out.temperature)), rests, turns

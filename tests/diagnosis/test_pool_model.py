@@ -7,10 +7,9 @@ import dataclasses
 
 import numpy as np
 import pytest
-from forward_synth import G, noise_free_imu, rests_from_truth, small_gimbal
+from forward_synth import G, joint_model, noise_free_imu, rests_from_truth, small_gimbal
 
 from imupipe.diagnosis.evaluate import Evaluation
-from imupipe.diagnosis.forward import JointModel, MotionAccel, Noise, Start
 from imupipe.diagnosis.linearised import fit
 from imupipe.diagnosis.pool import check_one_unit, diagnose_pooled, pool, pooled_walks
 from imupipe.diagnosis.select import VISIBLE_MIN, candidates, examine, rigid_walks, time_blocks
@@ -32,13 +31,7 @@ def _fitted(die_C: float, effects: dict | None, seed: int = 3, warming: bool = F
     if warming:
         imu["thermal"] = {"readout_quantum_C": 0.0, "ambient_C": die_C, "self_heating_C": 40.0, "tau_s": 60.0}
     out, truth = small_gimbal(seed, imu) if not effects else _with(seed, imu, effects)
-    rests, turns = rests_from_truth(out, truth)
-    cal = truth.calibration
-    start = Start(np.linalg.inv(cal["accel"].M), cal["accel"].b0, cal["gyro"].M, cal["gyro"].b0,
-                  cal["accel"].k, cal["gyro"].k)
-    noise = Noise(np.eye(3) * 5e-3**2, np.eye(3) * 3.5e-4**2, np.full(3, 1e-9), np.full(3, 1e-10))
-    acc = MotionAccel.select(out.t, out.raw["accel"], rests, turns)
-    model = JointModel(rests, turns, G, start, noise, fit_k=warming, accel=acc, temperature=(out.t, out.temperature))
+    model = joint_model(out, truth, fit_k=warming)[0]
     return fit(model, max_iter=5)
 
 
