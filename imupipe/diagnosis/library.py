@@ -26,7 +26,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from .linearised import Linearised
 from .residual_map import windows
-from .select import VISIBLE_MIN, Signals, time_blocks, wild_p
+from .select import BOOT_DRAWS, Q_FDR, VISIBLE_MIN, Signals, time_blocks, wild_p
 
 AXES = ("x", "y", "z")
 WARMUP_TAU_S = 120.0
@@ -94,13 +94,22 @@ def libraries(s: Signals) -> list[_Library]:
     return [lib for lib in out if len(lib.rows)]
 
 
+def bootstrap_draws(tests: int, level: float) -> int:
+    """Wild-bootstrap draws whose smallest p (1 / (draws + 1)) is at most half the
+    Benjamini-Hochberg threshold of the strongest of ``tests`` at ``level``: the bootstrap's
+    floor never decides a discovery."""
+    return max(BOOT_DRAWS, int(np.ceil(2 * tests / level)) - 1)
+
+
 def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndarray | None = None,
-                    unit: dict[str, str] | None = None, bootstrap: bool = False) -> list[StructureCell]:
+                    unit: dict[str, str] | None = None, bootstrap: bool = False,
+                    level: float = Q_FDR) -> list[StructureCell]:
     """One cell per sensor x regime of the library (all axes) and per output axis. With ``given``
     (N, m) columns already projected off the nominal Jacobian (accepted terms) and the residual
     ``r`` they were selected on, the test is conditional on those terms being fitted too.
     ``bootstrap``: each p-value is also the wild bootstrap's (``select.wild_p``; the projected
-    library is then formed on every row), as the diagnosis asks of a named finding."""
+    library is then formed on every row, with ``bootstrap_draws`` for the cells' Benjamini-Hochberg
+    ``level``), as the diagnosis asks of a named finding."""
     s = Signals(lin)
     unit = unit or {"accel": "m/s^2", "gyro": "rad/s"}
     r = lin.r if r is None else r
@@ -110,7 +119,9 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
         theta_given = -AA_inv @ (given.T @ r)
         r_after = r + given @ theta_given
     out = []
-    for lib in libraries(s):
+    libs = libraries(s)
+    draws = bootstrap_draws(len(libs) * (1 + len(AXES)), level)
+    for lib in libs:
         n = len(lib.rows)
         # d r / d theta on the library's rows: column c moves raw axis i only, so it is the
         # whitener's column i times the regressor (no (n, 3, k) raw-derivative array)
@@ -145,7 +156,7 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
             if given is not None and given.shape[1]:
                 Cp -= given @ (AA_inv @ LA.T)
                 r_boot = r_after
-            boot = (Cp, r_boot, time_blocks(lin))
+            boot = (Cp, r_boot, time_blocks(lin), draws)
         for axes in [tuple(AXES)] + [(a,) for a in AXES]:
             sel = np.array([AXES[i] in axes for i, *_ in lib.columns])
             cell = _score(lib, axes, sel, gram, proj, h, scale, C, t_rows, unit[lib.sensor], boot)
@@ -188,7 +199,7 @@ def _score(lib: _Library, axes, sel, gram, proj, h, scale, C, t_rows, unit, boot
                       "unit": f"{unit} per {ru}", "t": float(t[j])})
     p_boot = 0.0
     if boot is not None:
-        Cp, r_boot, groups = boot
-        p_boot = wild_p(Cp[:, idx] @ (D / d[:, None]), r_boot, groups)
+        Cp, r_boot, groups, draws = boot
+        p_boot = wild_p(Cp[:, idx] @ (D / d[:, None]), r_boot, groups, draws)
     return StructureCell(lib.sensor, axes, lib.regime, stat / scale, float(ok.sum()),
                          windows(t_rows, contrib), terms, p_bootstrap=p_boot)
