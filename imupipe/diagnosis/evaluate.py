@@ -21,7 +21,7 @@ keeps only its end-points. Each becomes an event of the residual map.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pyarrow as pa
@@ -93,22 +93,23 @@ def effective_counts(rests: Rests, streams: Mapping[str, tuple[np.ndarray, np.nd
 def white_noise(rests: Rests, streams: Mapping[str, tuple[np.ndarray, np.ndarray]], sensor: str) -> np.ndarray:
     """(3, 3) one raw sample's white-noise covariance: the rests' successive differences pooled
     (a bias walk, a thermal drift or a rest's offset do not enter them; quantisation does, as
-    it does the motions' samples), over the rests whose own level is within ``OUTLIER_SD``
-    standard errors of the pool's (a rest on a vibrating support is left out)."""
+    it does the motions' samples), over the rests whose own level (trace) is within ``OUTLIER_SD``
+    standard errors of the pool's, starting from the rests' median (a rest on a vibrating
+    support is left out)."""
     t, y = streams[sensor]
     i0 = np.searchsorted(t, rests.t_start_s)
     i1 = np.searchsorted(t, rests.t_end_s, "right")
     n = np.maximum(i1 - i0 - 1, 0)
-    D = np.array([np.diff(y[a:b], axis=0).T @ np.diff(y[a:b], axis=0) / 2 if b - a > 1 else np.zeros((3, 3))
-                  for a, b in zip(i0, i1, strict=True)])  # (k, 3, 3) sums
-    use = n > 0
+    D = np.zeros((len(n), 3, 3))  # each rest's sum of d d' / 2 over its successive differences d
+    for i, (a, b) in enumerate(zip(i0, i1, strict=True)):
+        d = np.diff(y[a:b], axis=0)
+        D[i] = d.T @ d / 2
+    level = np.einsum("kii->k", D) / np.maximum(n, 1)
+    centre = np.median(level[n > 0])  # the start: a bad rest cannot drag it
     for _ in range(3):
+        use = (n > 0) & (np.abs(level / centre - 1) <= OUTLIER_SD / np.sqrt(np.maximum(n, 1)))
         pooled = D[use].sum(axis=0) / n[use].sum()
-        level = np.einsum("kii->k", D) / np.maximum(n, 1) / np.trace(pooled)
-        keep = (n > 0) & (np.abs(level - 1) <= OUTLIER_SD / np.sqrt(np.maximum(n, 1)))
-        if np.array_equal(keep, use) or not keep.any():
-            break
-        use = keep
+        centre = np.trace(pooled)
     return pooled
 
 
@@ -189,8 +190,8 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
     kept = turns.subset(keep)
     S0, Q = lower_gauge(accel.S)
     start = Start(S0, accel.b0, Q @ gyro.M, gyro.b0, accel.k, gyro.k)
-    noise = Noise.from_rests(rests, q_accel, q_gyro)
-    noise = Noise(white_noise(rests, streams, "accel"), white_noise(rests, streams, "gyro"), noise.q_accel, noise.q_gyro)
+    noise = replace(Noise.from_rests(rests, q_accel, q_gyro), accel_sample=white_noise(rests, streams, "accel"),
+                    gyro_sample=white_noise(rests, streams, "gyro"))
     white_rests, rests = rests, effective_counts(rests, streams)
     power = power_on_rests(rests, t_a)
     # the temperature coefficients count among the calibration's parameters (leverage, and what a
