@@ -6,6 +6,11 @@ explanation; a cell of the residual map that stays flagged and that no accepted 
 sensor and regime covers becomes an ``unknown`` finding that says what it correlates with.
 A significant term whose held-out RMS does not improve significantly (paired z below
 ``HELDOUT_Z``) is not a finding (``not_confirmed``).
+
+A session's findings come from three families of tests: the catalogue's forward selection,
+the structure cells left after the accepted terms, and the map's chi2/dof cells. ``q`` is
+split among them (``FAMILY_SHARE``: Bonferroni across the families, Benjamini-Hochberg within
+each), so that a session without omitted physics reports anything at most ``q`` of the time.
 """
 
 from __future__ import annotations
@@ -22,35 +27,49 @@ from .select import (BLOCK_S, BOOT_DRAWS, HELDOUT_Z, Q_FDR, REVEAL, UNTESTED, VI
 AXES = ("x", "y", "z")
 EARTH_IMPLAUSIBLE = 1.2  # a vertical rate above this many Earth rates is not Earth's
 SD_DRAWS = 400  # draws carrying a term's covariance to its parameters' standard deviations
+FAMILY_SHARE = {"catalogue": 0.5, "structure": 0.25, "map": 0.25}  # of q; the three sum to 1
+
+
+def family_levels(q: float) -> dict[str, float]:
+    """Each family's Benjamini-Hochberg level: ``q`` split by ``FAMILY_SHARE``."""
+    return {family: q * share for family, share in FAMILY_SHARE.items()}
+
+
+def map_unknown_cells(map_doc: dict | None, level: float) -> list[dict]:
+    """The map's chi2/dof cells (its structure cells are tested given the findings instead)
+    discovered by Benjamini-Hochberg at ``level`` (the map's own flags are at its ``fdr_q``)."""
+    cells = [c for c in (map_doc or {}).get("cells", []) if c["variable"] != "structure"]
+    found = benjamini_hochberg(np.array([c["p_value"] for c in cells]), level)
+    return [c for c, f in zip(cells, found, strict=True) if f]
 
 
 def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str = "", q: float = Q_FDR) -> dict:
     lin = ev.lin
+    level = family_levels(q)
     rigid = rigid_walks(lin)
     tested = [examine(lin, c, rigid) for c in candidates(lin, ev.frame, effects)]
-    rp, findings, not_confirmed, kept = catalogue_findings(lin, tested, effects, q)
+    rp, findings, not_confirmed, kept = catalogue_findings(lin, tested, effects, level["catalogue"])
     # structure the accepted terms leave: the generic library tested conditionally on them
     given = np.hstack([f.tested.projected for f in kept]) if kept else None
-    left = structure_cells(lin, given, rp, bootstrap=True)
-    for cell, flag in zip(left, benjamini_hochberg(np.array([c.p_value for c in left]), q)):
+    left = structure_cells(lin, given, rp, bootstrap=True, level=level["structure"])
+    for cell, flag in zip(left, benjamini_hochberg(np.array([c.p_value for c in left]), level["structure"])):
         if flag and not any(u["sensor"] == cell.sensor and u["regime"] == cell.regime
                             for u in findings if u["effect"] == "unknown"):
             findings.append(_structure(cell))
     covered = {(f["sensor"], f["regime"]) for f in findings}
-    for cell in (map_doc or {}).get("cells", []):
-        if not cell.get("flagged") or cell["variable"] == "structure":  # tested above, given the findings
-            continue
+    for cell in map_unknown_cells(map_doc, level["map"]):
         regimes = {cell["regime"], "all"}
         if any((cell["sensor"], r) in covered for r in regimes):
             continue
         findings.append(_unknown(cell))
         covered.add((cell["sensor"], cell["regime"]))
     return {"session": session, "findings": findings, **coverage(tested, effects), "not_confirmed": not_confirmed,
-            "fdr_q": q,
+            "fdr_q": q, "family_q": level,
             "method": "score tests against the fitted per-sample model (the larger p of chi-square and a wild "
                       f"bootstrap over {BLOCK_S:g}-s time blocks, {BOOT_DRAWS} draws), "
                       "Benjamini-Hochberg forward selection with a backward check, 5-fold blocked "
-                      "cross-validation by rest and motion"}
+                      "cross-validation by rest and motion; q split among the catalogue, the structure "
+                      "cells and the map's cells (Bonferroni across, Benjamini-Hochberg within)"}
 
 
 def catalogue_findings(lin, tested: list, effects: dict, q: float = Q_FDR, held_out=heldout

@@ -21,7 +21,7 @@ keeps only its end-points. Each becomes an event of the residual map.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pyarrow as pa
@@ -42,9 +42,10 @@ TRANSLATION_M = 0.15  # a motion that moves the unit further than this is a carr
 POWER_GAP_S = 1.0  # a gap in the samples longer than this is a power cycle (new turn-on bias)
 EXCLUDING = ("gap", "shock", "splice", "saturation")  # events that forbid integrating across
 THERMAL_SPAN_C = 1.0  # rests spanning less cannot tell k from the bias
-ESS_BATCHES = 8
+ESS_BATCHES = 8  # batch means per rest that measure its samples' correlation
+OUTLIER_SD = 4.0  # a rest whose noise level is further from the pool's is not white noise
 SCREEN_ITER = 2  # iterations of the first fit, before the carries are found
-FIT_TOL = 1e-7  # relative cost decrease that ends the fit (a final Gauss-Newton step polishes it)  # batch means per rest that measure its samples' correlation
+FIT_TOL = 1e-7  # relative cost decrease that ends the fit (a final Gauss-Newton step polishes it)
 
 
 @dataclass
@@ -87,6 +88,29 @@ def effective_counts(rests: Rests, streams: Mapping[str, tuple[np.ndarray, np.nd
         counts[sensor] = n / np.maximum(factor, 1.0)
     return Rests(rests.t_start_s, rests.t_end_s, rests.count, rests.mean, rests.cov, rests.temperature,
                  {**rests.counts, **counts}, rests.t0_ns)
+
+
+def white_noise(rests: Rests, streams: Mapping[str, tuple[np.ndarray, np.ndarray]], sensor: str) -> np.ndarray:
+    """(3, 3) one raw sample's white-noise covariance: the rests' successive differences pooled
+    (a bias walk, a thermal drift or a rest's offset do not enter them; quantisation does, as
+    it does the motions' samples), over the rests whose own level (trace) is within ``OUTLIER_SD``
+    standard errors of the pool's, starting from the rests' median (a rest on a vibrating
+    support is left out)."""
+    t, y = streams[sensor]
+    i0 = np.searchsorted(t, rests.t_start_s)
+    i1 = np.searchsorted(t, rests.t_end_s, "right")
+    n = np.maximum(i1 - i0 - 1, 0)
+    D = np.zeros((len(n), 3, 3))  # each rest's sum of d d' / 2 over its successive differences d
+    for i, (a, b) in enumerate(zip(i0, i1, strict=True)):
+        d = np.diff(y[a:b], axis=0)
+        D[i] = d.T @ d / 2
+    level = np.einsum("kii->k", D) / np.maximum(n, 1)
+    centre = np.median(level[n > 0])  # the start: a bad rest cannot drag it
+    for _ in range(3):
+        use = (n > 0) & (np.abs(level / centre - 1) <= OUTLIER_SD / np.sqrt(np.maximum(n, 1)))
+        pooled = D[use].sum(axis=0) / n[use].sum()
+        centre = np.trace(pooled)
+    return pooled
 
 
 def power_on_rests(rests: Rests, t: np.ndarray) -> np.ndarray:
@@ -166,7 +190,8 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
     kept = turns.subset(keep)
     S0, Q = lower_gauge(accel.S)
     start = Start(S0, accel.b0, Q @ gyro.M, gyro.b0, accel.k, gyro.k)
-    noise = Noise.from_rests(rests, q_accel, q_gyro)
+    noise = replace(Noise.from_rests(rests, q_accel, q_gyro), accel_sample=white_noise(rests, streams, "accel"),
+                    gyro_sample=white_noise(rests, streams, "gyro"))
     white_rests, rests = rests, effective_counts(rests, streams)
     power = power_on_rests(rests, t_a)
     # the temperature coefficients count among the calibration's parameters (leverage, and what a

@@ -31,7 +31,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from .linearised import Linearised
 from .residual_map import windows
-from .select import VISIBLE_MIN, Signals, block_wild_p, rigid_walks, time_blocks
+from .select import BOOT_DRAWS, Q_FDR, VISIBLE_MIN, Signals, block_wild_p, rigid_walks, time_blocks
 
 AXES = ("x", "y", "z")
 WARMUP_TAU_S = 120.0
@@ -188,13 +188,22 @@ def _carried(lin: Linearised, signals: list) -> _Carried:
     return _Carried(at, lin.J_g[at, lin.globals.slices["b_g"]], X)
 
 
+def bootstrap_draws(tests: int, level: float) -> int:
+    """Wild-bootstrap draws whose smallest p (1 / (draws + 1)) is at most half the
+    Benjamini-Hochberg threshold of the strongest of ``tests`` at ``level``: the bootstrap's
+    floor never decides a discovery."""
+    return max(BOOT_DRAWS, int(np.ceil(2 * tests / level)) - 1)
+
+
 def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndarray | None = None,
-                    unit: dict[str, str] | None = None, bootstrap: bool = False) -> list[StructureCell]:
+                    unit: dict[str, str] | None = None, bootstrap: bool = False,
+                    level: float = Q_FDR) -> list[StructureCell]:
     """One cell per sensor x regime of the library (all axes) and per output axis. With ``given``
     (N, m) columns already projected off the nominal Jacobian (accepted terms) and the residual
     ``r`` they were selected on, the test is conditional on those terms being fitted too.
-    ``bootstrap``: each p-value is also the wild bootstrap's (``select.block_wild_p``), as the
-    diagnosis asks of a named finding. Every statistic is a sum over rows, accumulated over
+    ``bootstrap``: each p-value is also the wild bootstrap's (``select.block_wild_p``, with
+    ``bootstrap_draws`` for the cells' Benjamini-Hochberg ``level``), as the diagnosis asks of a
+    named finding. Every statistic is a sum over rows, accumulated over
     chunks of the library's columns (``_Library.chunks``)."""
     s = Signals(lin)
     unit = unit or {"accel": "m/s^2", "gyro": "rad/s"}
@@ -214,7 +223,9 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
         S_g, S_l = Gr @ lin.J_g, Gr @ lin.J_l
     rigid = rigid_walks(lin)[0]
     out = []
-    for lib in libraries(s):
+    libs = libraries(s)
+    draws = bootstrap_draws(len(libs) * (1 + len(AXES)), level)
+    for lib in libs:
         k = len(lib.columns)
         gram, Cr = np.zeros((k, k)), np.zeros(k)
         JgC, JlC = np.zeros((lin.J_g.shape[1], k)), np.zeros((lin.J_l.shape[1], k))
@@ -252,14 +263,14 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
         scored = []
         for axes in [tuple(AXES)] + [(a,) for a in AXES]:
             sel = np.array([AXES[i] in axes for i, *_ in lib.columns])
-            cell = _score(lib, axes, sel, gram, visible, proj, h, scale, unit[lib.sensor], g_b)
+            cell = _score(lib, axes, sel, gram, visible, proj, h, scale, unit[lib.sensor], g_b, draws)
             if cell is not None:
                 scored.append(cell)
         out += _with_windows(lin, lib, scored)
     return out
 
 
-def _score(lib: _Library, axes, sel, gram, visible, proj, h, scale, unit, g_b=None
+def _score(lib: _Library, axes, sel, gram, visible, proj, h, scale, unit, g_b=None, draws: int = BOOT_DRAWS
            ) -> tuple[StructureCell, np.ndarray] | None:
     """The cell's score test and its fitted library term ``w`` (k,), raw column coordinates. The
     directions tested are those the nominal parameters leave ``VISIBLE_MIN`` visible (``visible``:
@@ -303,7 +314,7 @@ def _score(lib: _Library, axes, sel, gram, visible, proj, h, scale, unit, g_b=No
     p_boot = 0.0
     if g_b is not None:
         M = D / d[:, None]  # the tested directions in raw column coordinates
-        p_boot = block_wild_p(g_b[:, idx] @ M, M.T @ proj[np.ix_(idx, idx)] @ M)
+        p_boot = block_wild_p(g_b[:, idx] @ M, M.T @ proj[np.ix_(idx, idx)] @ M, draws)
     return StructureCell(lib.sensor, axes, lib.regime, stat / scale, float(good.sum()), [], terms,
                          p_bootstrap=p_boot), w
 

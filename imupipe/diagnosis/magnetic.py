@@ -10,9 +10,10 @@ mean's covariance (the segmentation's, with the rest's effective sample size) pu
 through the calibration. The calibration (M, b0 and k where the rests span 1 degC) and the
 dip are refitted to these rows (``F`` is the rests' mean: M carries the scale), and each row counts one minus its leverage.
 
-Within-rest scatter is tested against the sensor's noise from successive differences
-(white noise and quantisation pass through them; an interference of ~1 Hz, slow
-wander or a vibrating support do not), per rest and axis.
+Within-rest scatter is tested per rest and axis against that rest's own successive
+differences (von Neumann's ratio): independent samples pass, whatever their noise level or
+quantisation; an interference of ~1 Hz, slow wander or a vibrating support do not. The bias's
+thermal drift the calibration models (``k``) is taken out first.
 """
 
 from __future__ import annotations
@@ -75,25 +76,47 @@ def rest_rows(rests: Rests, accel: TriadCalibration, mag: TriadCalibration) -> R
     return RowSet(r, w, np.full(2 * k, "mag"), np.full(2 * k, -1), np.full(2 * k, "static"), t, var)
 
 
-def scatter_rows(rests: Rests, t_s: np.ndarray, y: np.ndarray) -> RowSet | None:
-    """Within-rest scatter of the raw magnetometer against its successive-difference noise:
-    one row per rest and axis with ``r^2 = (m - 1) s^2 / sigma^2`` on ``m - 1`` dof."""
+MIN_SCATTER_SAMPLES = 20  # below, von Neumann's ratio is too far from normal for its chi-square equivalent
+
+
+def scatter_rows(rests: Rests, t_s: np.ndarray, y: np.ndarray, k: np.ndarray | None = None,
+                 temperature: tuple[np.ndarray, np.ndarray] | None = None) -> RowSet | None:
+    """Within-rest scatter of the raw magnetometer ``y`` (n, 3) at ``t_s`` (n,) s, one row per rest
+    and axis: von Neumann's ratio of the rest's samples as its chi-square equivalent on ``m - 1``
+    dof (``von_neumann_chi2``). ``k`` (3,) raw units per degC and ``temperature`` (t s, T degC):
+    the calibration's thermal drift, removed before."""
     if not len(t_s) or not len(rests):
         return None
+    if k is not None and temperature is not None and np.any(k):
+        y = y - np.outer(np.interp(t_s, *temperature), k)
     lo = np.searchsorted(t_s, rests.t_start_s, "left")
     hi = np.searchsorted(t_s, rests.t_end_s, "right")
-    keep = (hi - lo) >= 8
+    keep = (hi - lo) >= MIN_SCATTER_SAMPLES
     if keep.sum() < 3:
         return None
-    d2 = [np.mean(np.diff(y[a:b], axis=0) ** 2, axis=0) / 2 for a, b in zip(lo[keep], hi[keep], strict=True)]
-    sigma2 = np.median(np.array(d2), axis=0)  # white noise and quantisation, robust to a bad rest
-    if np.any(sigma2 <= 0):
-        return None
-    m = (hi - lo)[keep].astype(float)
-    s2 = np.array([np.var(y[a:b], axis=0, ddof=1) for a, b in zip(lo[keep], hi[keep], strict=True)])
-    chi2 = (m - 1)[:, None] * s2 / sigma2  # (k, 3)
+    chi2, dof = zip(*(von_neumann_chi2(y[a:b]) for a, b in zip(lo[keep], hi[keep], strict=True)), strict=True)
+    chi2, dof = np.array(chi2), np.array(dof, float)  # (k, 3), (k,)
     k = int(keep.sum())
     mid = np.repeat(0.5 * (rests.t_start_s + rests.t_end_s)[keep], 3)
-    return RowSet(np.sqrt(chi2).ravel(), np.repeat(m - 1, 3), np.full(3 * k, "mag"), np.tile(np.arange(3), k),
-                  np.full(3 * k, "static"), mid,
-                  {"time s": mid, "temperature degC": np.repeat(rests.temperature[keep], 3)}, family="noise")
+    ok = np.isfinite(chi2).ravel()  # a rest whose quantised output never changes tells nothing
+    return RowSet(np.sqrt(chi2).ravel()[ok], np.repeat(dof, 3)[ok], np.full(3 * k, "mag")[ok],
+                  np.tile(np.arange(3), k)[ok], np.full(3 * k, "static")[ok], mid[ok],
+                  {"time s": mid[ok], "temperature degC": np.repeat(rests.temperature[keep], 3)[ok]}, family="noise")
+
+
+def von_neumann_chi2(x: np.ndarray) -> tuple[np.ndarray, int]:
+    """(3,) chi-square equivalents on ``m - 1`` dof of the scatter of ``x`` (m, 3) about its mean
+    beyond what its successive differences show.
+
+    von Neumann's ratio ``Q = sum(diff(x)^2) / sum((x - mean)^2)`` of independent samples has
+    mean 2 and variance ``4 (m - 2) / (m^2 - 1)`` exactly under normality (for any noise level;
+    quantisation keeps the samples independent); its standard score ``z`` (positive when the
+    scatter exceeds the differences) goes to the chi-square scale by Wilson-Hilferty:
+    ``(m - 1) (1 - a + z sqrt(a))^3``, ``a = 2 / (9 (m - 1))``. NaN where ``x`` is constant."""
+    m = len(x)
+    e2 = np.sum((x - x.mean(axis=0)) ** 2, axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = np.sum(np.diff(x, axis=0) ** 2, axis=0) / np.where(e2 > 0, e2, np.nan)
+    z = (2 - q) / np.sqrt(4 * (m - 2) / (m * m - 1.0))
+    a = 2 / (9 * (m - 1))
+    return (m - 1) * np.clip(1 - a + z * np.sqrt(a), 0, None) ** 3, m - 1

@@ -106,7 +106,8 @@ def magnetometer_rows(inputs: Mapping[str, pa.Table]) -> tuple:
     t_ns, y = xyz(inputs["mag"])
     t = (t_ns - rests.t0_ns) * 1e-9
     rests = effective_counts(rests, {"mag": (t, y)})
-    return tuple(rs for rs in (rest_rows(rests, cal["accel"], mag_cal["mag"]), scatter_rows(rests, t, y))
+    scatter = scatter_rows(rests, t, y, mag_cal["mag"].k, temperature_stream(inputs.get("temperature"), rests.t0_ns))
+    return tuple(rs for rs in (rest_rows(rests, cal["accel"], mag_cal["mag"]), scatter)
                  if rs is not None)
 
 

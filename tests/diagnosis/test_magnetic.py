@@ -54,6 +54,26 @@ def test_rest_rows_are_white_on_a_null_and_see_a_field_that_changes_between_plac
     assert any(c.variable == "time s" for c in flagged)
 
 
+def test_within_rest_scatter_is_chi_square_on_a_quantised_null_with_thermal_drift():
+    """A 5-min warm-up rest whose bias drifts as the calibration's k says, then 150 rests of 5 s;
+    quantised white noise whose level differs between rests (0.25 to 1 LSB). The block's chi2/dof
+    lies within 3 sd of 1 (a noise level pooled over rests, or the drift left in, puts it out)."""
+    rng = np.random.default_rng(3)
+    rate, k_mag = 100.0, np.array([2e-8, -2e-8, 1e-8])
+    starts = np.r_[0.0, 305.0 + 7.0 * np.arange(150)]
+    ends = np.r_[300.0, starts[1:] + 5.0]
+    t = np.arange(0.0, ends[-1] + 1.0, 1 / rate)
+    T = 25.0 + 6.0 * (1 - np.exp(-t / 200.0))
+    sd = SIGMA * rng.uniform(0.5, 2.0, (len(starts), 1))
+    level = sd[np.clip(np.searchsorted(starts, t, "right") - 1, 0, len(starts) - 1)]
+    y = np.round((F + np.outer(T - 25.0, k_mag) + level * rng.normal(size=(len(t), 3))) / 1.5e-7) * 1.5e-7
+    n = len(starts)
+    rests = Rests(starts, ends, np.full(n, 500), {}, {}, np.full(n, np.nan))
+    rs = scatter_rows(rests, t, y, k_mag, (t, T))
+    stat, dof = float(rs.r @ rs.r), float(rs.w.sum())
+    assert abs(stat / dof - 1) < 3 * np.sqrt(2 / dof)
+
+
 def test_within_rest_scatter_sees_a_switched_current_but_not_white_noise_or_quantisation():
     rng = np.random.default_rng(2)
     rests = _rests(rng, n=12)
