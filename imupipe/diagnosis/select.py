@@ -563,7 +563,7 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR) -> tuple[np.
         if best[0] not in [f.tested for f in accepted]:
             break
     _earth_or_g(accepted, pool, stat, n_rows)
-    _rivals(accepted, pool, stat, q)
+    _rivals(accepted, tested, stat, q)  # a rival too faint to be named can still explain it as well
     if accepted:
         A = np.hstack([f.tested.projected for f in accepted])
         theta = -np.linalg.lstsq(A, rp, rcond=None)[0]  # r(theta) = rp + A theta, minimised
@@ -576,9 +576,10 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR) -> tuple[np.
 
 
 def _rivals(accepted: list[Finding], pool: list[Tested], stat, q: float) -> None:
-    """The naming traps this recording cannot resolve (in place): a rival catalogue term that is
-    significant in an accepted one's place while the accepted one adds nothing significant beyond
-    it (a warm-up transient and a thermal lag when the lag's start-up falls in one long rest).
+    """The naming traps this recording cannot resolve (in place): a rival catalogue term (any
+    tested one, also one too little visible to be named itself) that is significant in an accepted
+    one's place while the accepted one adds nothing significant beyond it (a warm-up transient and
+    a thermal lag when the lag's start-up falls in one long rest).
     Neither name is then stood behind (``diagnose`` reports an ``unknown`` naming both). A rival
     whose columns contain the accepted one's (Earth's vertical rate inside a g-sensitivity) is
     a parsimony question, ``_earth_or_g``'s."""
