@@ -84,7 +84,7 @@ def catalogue_findings(lin, tested: list, effects: dict, q: float = Q_FDR, held_
         rejects = f.tested.candidate.rejects
         unphysical = rejects(f.theta) if rejects else None  # e.g. a thermal lag the read-out makes
         if not unphysical and doc["heldout_rms_after"] < doc["heldout_rms_before"] and doc["heldout_z"] >= HELDOUT_Z:
-            findings.append(doc)
+            findings.append(_ambiguous(doc, f.rivals) if f.rivals else doc)
             kept.append(f)
         else:  # significant on the data it was fitted to, not better on data it was not: not stood behind
             not_confirmed.append({"effect": doc["effect"], "sensor": doc["sensor"], "regime": doc["regime"],
@@ -190,6 +190,23 @@ def _unknown_finding(sensor: str, axes: list, regime: str, windows: list, parame
             "significance": {"statistic": statistic, "p_value": p_value, "delta_bic": None},
             "heldout_rms_before": None, "heldout_rms_after": None, "heldout_z": None,
             "explanation": explanation}
+
+
+def _ambiguous(doc: dict, rivals: list[str]) -> dict:
+    """A confirmed term whose rivals explain the recording as well: an ``unknown`` naming each."""
+    names = [doc["effect"], *rivals]
+    reveal = "; ".join(f"{n}: {REVEAL[n]}" for n in names if n in REVEAL)
+    out = _unknown_finding(
+        doc["sensor"], doc["axes"], doc["regime"], doc["windows"],
+        {"candidates": names, doc["effect"]: doc["parameters"]}, doc["significance"]["statistic"],
+        doc["significance"]["p_value"],
+        f"The {doc['sensor']} residuals in the {doc['regime']} rows carry a term that {' or '.join(names)} "
+        f"explains equally well on this recording (each significant in the other's place, neither "
+        f"beyond the other): a naming trap it cannot resolve, so neither is stood behind. "
+        f"To tell them apart: {reveal or 'a recording that excites them differently'}.")
+    out["heldout_rms_before"], out["heldout_rms_after"], out["heldout_z"] = (
+        doc["heldout_rms_before"], doc["heldout_rms_after"], doc["heldout_z"])
+    return out
 
 
 def _unknown(cell: dict) -> dict:

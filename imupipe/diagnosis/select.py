@@ -508,6 +508,7 @@ class Finding:
     delta_bic: float
     theta: np.ndarray = None  # type: ignore[assignment]
     p_asymptotic: float = float("nan")  # chi-square's, before the bootstrap's floor of 1/(draws + 1)
+    rivals: list[str] = field(default_factory=list)  # effects that explain it as well (``_rivals``)
 
 
 def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR) -> tuple[np.ndarray, list[Finding]]:
@@ -562,6 +563,7 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR) -> tuple[np.
         if best[0] not in [f.tested for f in accepted]:
             break
     _earth_or_g(accepted, pool, stat, n_rows)
+    _rivals(accepted, tested, stat, q)  # a rival too faint to be named can still explain it as well
     if accepted:
         A = np.hstack([f.tested.projected for f in accepted])
         theta = -np.linalg.lstsq(A, rp, rcond=None)[0]  # r(theta) = rp + A theta, minimised
@@ -571,6 +573,31 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR) -> tuple[np.
             f.theta = theta[o:o + k]
             o += k
     return rp, accepted
+
+
+def _rivals(accepted: list[Finding], pool: list[Tested], stat, q: float) -> None:
+    """The naming traps this recording cannot resolve (in place): a rival catalogue term (any
+    tested one, also one too little visible to be named itself) that is significant in an accepted
+    one's place while the accepted one adds nothing significant beyond it (a warm-up transient and
+    a thermal lag when the lag's start-up falls in one long rest).
+    Neither name is then stood behind (``diagnose`` reports an ``unknown`` naming both). A rival
+    whose columns contain the accepted one's (Earth's vertical rate inside a g-sensitivity) is
+    a parsimony question, ``_earth_or_g``'s."""
+    for f in accepted:
+        others = [g for g in accepted if g is not f]
+        for t in pool:
+            if t.candidate.effect == f.tested.candidate.effect or t.candidate.effect in f.rivals \
+                    or any(t is g.tested for g in accepted) or _within(f.tested.projected, t.projected):
+                continue
+            if stat(t, others)[1] > q:
+                continue
+            if stat(f.tested, others + [Finding(t, 0.0, 0.0, 0.0)])[1] > q:
+                f.rivals.append(t.candidate.effect)
+
+
+def _within(A: np.ndarray, B: np.ndarray) -> bool:
+    """The columns of ``A`` lie in the span of ``B``'s."""
+    return float(np.linalg.norm(_orth(A, B))) <= 1e-6 * float(np.linalg.norm(A))
 
 
 def _earth_or_g(accepted: list[Finding], pool: list[Tested], stat, n_rows: int) -> None:
