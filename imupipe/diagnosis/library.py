@@ -203,8 +203,8 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
     ``r`` they were selected on, the test is conditional on those terms being fitted too.
     ``bootstrap``: each p-value is also the wild bootstrap's (``select.block_wild_p``, with
     ``bootstrap_draws`` for the cells' Benjamini-Hochberg ``level``), as the diagnosis asks of a
-    named finding. Every statistic is a sum over rows, accumulated over
-    chunks of the library's columns (``_Library.chunks``)."""
+    named finding. Every statistic is a sum over rows, accumulated over chunks of the library's
+    columns (``_Library.chunks``)."""
     s = Signals(lin)
     unit = unit or {"accel": "m/s^2", "gyro": "rad/s"}
     r = lin.r if r is None else r
@@ -219,7 +219,7 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
     lev = lin.leverage if lin.leverage is not None else np.zeros(N)
     if bootstrap:  # each time block's sums of r-weighted rows: the block scores of the projected columns
         _, blocks = np.unique(time_blocks(lin), return_inverse=True)
-        Gr = sp.csr_matrix((r_use, (blocks, np.arange(N))), shape=(blocks.max() + 1, N))
+        Gr = sp.csc_matrix((r_use, (blocks, np.arange(N))), shape=(blocks.max() + 1, N))  # sliced by rows of the fit
         S_g, S_l = Gr @ lin.J_g, Gr @ lin.J_l
     rigid = rigid_walks(lin)[0]
     out = []
