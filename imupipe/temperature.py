@@ -11,9 +11,17 @@ minutes, nothing else.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
+from .models import T_REF_C
+
+if TYPE_CHECKING:
+    from scipy.interpolate import BSpline
+
 SMOOTH_S = 30.0
+RATE_S = SMOOTH_S  # s: knot spacing of the curve whose slope is the read-out's rate
 
 
 def smoothed(t: np.ndarray, T: np.ndarray, window_s: float = SMOOTH_S) -> np.ndarray:
@@ -28,3 +36,37 @@ def smoothed(t: np.ndarray, T: np.ndarray, window_s: float = SMOOTH_S) -> np.nda
     hi = np.searchsorted(t, t + window_s / 2, "right")
     n = k[hi] - k[lo]
     return np.divide(c[hi] - c[lo], n, out=np.full(len(t), np.nan), where=n > 0)
+
+
+def rate_curve(t: np.ndarray, T: np.ndarray, t_first: float, t_last: float, trim: bool = True) -> BSpline:
+    """The temperature ``T`` (n,) degC at ``t`` (n,) s as a least-squares cubic spline with knots
+    ``RATE_S`` apart (at quantiles of its samples): the read-out's steps average out within each
+    interval, and its slope is smooth where a difference of the steps would not be. ``trim``: fitted
+    where a ``SMOOTH_S`` moving average of the stream is centred (half its window in from
+    [``t_first``, ``t_last``], where it shrinks and flattens the slope); extrapolated beyond; a line
+    when too short."""
+    from scipy.interpolate import BSpline, make_lsq_spline
+
+    t, T = np.asarray(t, float), np.asarray(T, float)
+    if trim and t_last - t_first > 2 * SMOOTH_S:
+        t_first, t_last = t_first + SMOOTH_S / 2, t_last - SMOOTH_S / 2
+    ok = np.isfinite(T) & (t >= t_first) & (t <= t_last)
+    t, idx = np.unique(t[ok], return_index=True)
+    T = T[ok][idx]
+    if len(t) < 2:
+        return BSpline(np.r_[t_first, t_first, t_last, t_last], np.full(2, T[0] if len(T) else T_REF_C), 1)
+    degree = 3 if len(t) >= 8 else 1
+    inner = int((t[-1] - t[0]) // RATE_S) - 1
+    inner = min(max(inner, 0), len(t) - degree - 1)
+    knots = np.r_[[t[0]] * (degree + 1), np.quantile(t, np.linspace(0, 1, inner + 2)[1:-1]), [t[-1]] * (degree + 1)]
+    return make_lsq_spline(t, T, knots, k=degree)
+
+
+def temperature_rate(curve: BSpline, t0: np.ndarray, t1: np.ndarray | None = None) -> np.ndarray:
+    """(n,) degC/s: the slope of ``curve`` at ``t0`` (n,) s, or its mean over [``t0``, ``t1``]."""
+    t0 = np.asarray(t0, float)
+    if t1 is None:
+        return curve.derivative()(t0)
+    width = np.asarray(t1, float) - t0
+    return np.where(width > 0, (curve(t1) - curve(t0)) / np.where(width > 0, width, 1.0),
+                    curve.derivative()(t0))

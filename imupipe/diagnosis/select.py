@@ -51,7 +51,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 from scipy import stats
-from scipy.interpolate import BSpline, make_lsq_spline
 from scipy.signal import savgol_filter
 
 from ..effects.earth_rotation import EARTH_RATE
@@ -59,7 +58,7 @@ from ..errors import SolverError
 from ..models import T_REF_C
 from ..rotations import skew
 from ..solvers.blocktri import Bordered
-from ..temperature import SMOOTH_S
+from ..temperature import SMOOTH_S, rate_curve, temperature_rate
 from .linearised import Linearised
 from .residual_map import benjamini_hochberg
 
@@ -73,7 +72,6 @@ NONCENTRALITY_80 = 7.85  # chi2_1 noncentrality for 80 % power at alpha = 0.05
 BLOCK_S = 5.0  # time blocks of the wild bootstrap (rows within a block keep their signs together)
 BOOT_DRAWS = 999
 RIGID = 1e3  # weight on the walks' increments when the visible fraction is measured (q / 1e6)
-RATE_S = SMOOTH_S  # s: knot spacing of the temperature curve whose slope is the read-out's rate
 LAG_MIN_S = SMOOTH_S  # s: a shorter fitted thermal lag is the read-out's quantisation
 WHITENED = "whitened"  # a term judged on every row it reaches, whitened (the gyro's inside motions)
 GYRO_STEP = 1e-7  # rad/s: the largest perturbation of a gyro sample when differencing a term's column
@@ -247,39 +245,13 @@ class Signals:
         return out
 
 
-def temperature_curve(model, t_first: float, t_last: float) -> BSpline:
-    """The model's (de-quantised) temperature, degC, as a least-squares cubic spline in time (s)
-    with knots ``RATE_S`` apart (at quantiles of its samples): the read-out's steps average out
-    within each interval, and its slope is smooth where a difference of the steps would not be.
-    Fitted where the stream's moving average is centred (half its window in from the recording's
-    ends, where it shrinks and flattens the slope), extrapolated beyond; a line when too short."""
+def temperature_curve(model, t_first: float, t_last: float):
+    """The model's temperature (its stream, else its rests' means) as ``temperature.rate_curve``
+    over [``t_first``, ``t_last``] s."""
     stream = model._temperature
     if stream is not None and len(stream[0]):
-        t, T = (np.asarray(a, float) for a in stream)
-        if t_last - t_first > 2 * SMOOTH_S:
-            t_first, t_last = t_first + SMOOTH_S / 2, t_last - SMOOTH_S / 2
-    else:
-        t, T = model.mid, model.dT + T_REF_C
-    ok = np.isfinite(T) & (t >= t_first) & (t <= t_last)
-    t, idx = np.unique(t[ok], return_index=True)
-    T = T[ok][idx]
-    if len(t) < 2:
-        return BSpline(np.r_[t_first, t_first, t_last, t_last], np.full(2, T[0] if len(T) else T_REF_C), 1)
-    degree = 3 if len(t) >= 8 else 1
-    inner = int((t[-1] - t[0]) // RATE_S) - 1
-    inner = min(max(inner, 0), len(t) - degree - 1)
-    knots = np.r_[[t[0]] * (degree + 1), np.quantile(t, np.linspace(0, 1, inner + 2)[1:-1]), [t[-1]] * (degree + 1)]
-    return make_lsq_spline(t, T, knots, k=degree)
-
-
-def temperature_rate(curve: BSpline, t0: np.ndarray, t1: np.ndarray | None = None) -> np.ndarray:
-    """(n,) degC/s: the slope of ``curve`` at ``t0`` (n,) s, or its mean over [``t0``, ``t1``]."""
-    t0 = np.asarray(t0, float)
-    if t1 is None:
-        return curve.derivative()(t0)
-    width = np.asarray(t1, float) - t0
-    return np.where(width > 0, (curve(t1) - curve(t0)) / np.where(width > 0, width, 1.0),
-                    curve.derivative()(t0))
+        return rate_curve(*stream, t_first, t_last)
+    return rate_curve(model.mid, model.dT + T_REF_C, t_first, t_last, trim=False)
 
 
 def _derivative(y: np.ndarray, t: np.ndarray, span_s: float = 0.1) -> np.ndarray:

@@ -140,7 +140,7 @@ def _edge(x) -> float:
 
 STAGE = Stage(
     name="map_residuals",
-    version="11",
+    version="12",
     func=map_residuals,
     inputs={"accel": "accel", "gyro": "gyro", "temperature": "temperature", "rests": "rests",
             "turns": "turns", "calibration": "calibration", "events": "events", "mag": "mag",
@@ -178,7 +178,7 @@ def diagnose_session(inputs: Mapping[str, pa.Table], params: MapParams, solver: 
 
 DIAGNOSE = Stage(
     name="diagnose",
-    version="12",
+    version="13",
     func=diagnose_session,
     inputs=STAGE.inputs,
     outputs={"samples": "sample_residuals", "map": "residual_map", "diagnosis": "diagnosis"},

@@ -145,7 +145,7 @@ def screen(inputs: Mapping[str, pa.Table], params: ScreenParams, solver: BoundSo
 
 
 STAGE = Stage(
-    name="screen_events", version="1", func=screen,
+    name="screen_events", version="2", func=screen,
     inputs={"accel": "accel", "gyro": "gyro", "mag": "mag", "temperature": "temperature",
             "turns": "turns"},
     outputs={"events": "events", "turns": "turns"}, params=ScreenParams,
