@@ -76,6 +76,9 @@ def fitted_size(effect: str, params: dict) -> float:
 SENSOR = {"gyro_g_sensitivity": "gyro", "bias_temperature_nonlinear": "gyro", "earth_rotation": "gyro",
           "gyro_scale_temperature": "gyro", "gyro_scale_asymmetry": "gyro", "warmup_transient": "gyro",
           "thermal_lag": None}  # None: either triad (one lag for both, named after the one carrying more)
+EFFECTS = ["lever_arm", "accel_gyro_time_offset", "accel_nonlinearity", "accel_scale_temperature",
+           "gyro_g_sensitivity", "bias_temperature_nonlinear", "earth_rotation", "gyro_scale_temperature",
+           "gyro_scale_asymmetry", "thermal_lag", "warmup_transient"]
 MOTION = ("lever_arm", "accel_gyro_time_offset", "gyro_scale_temperature", "gyro_scale_asymmetry")
 WARMUP_TAU_S = 120.0  # the injected warm-up transient's time constant (one of select.WARMUP_TAUS_S)
 LAG_S = 4 * LAG_MIN_S  # the thermal lag's smallest injected size (shorter ones are read-out artefacts)
@@ -103,9 +106,41 @@ def diagnose(protocol: str, seed: int, effects: dict, folder: Path) -> dict:
     run_sessions([path], PIPELINE[protocol], out, quiet=True, diagnose=True)
     doc = json.loads((out / path.stem / "diagnosis.json").read_text())
     rmap = json.loads((out / path.stem / "residual_map.json").read_text())
-    doc["top_cell"] = rmap["cells"][0] if rmap["cells"] and rmap["cells"][0]["flagged"] else None
+    doc["top_cell"] = rmap["cells"][0] if rmap["cells"] else None
     doc["seconds"] = time.perf_counter() - t
     return doc
+
+
+def minimum_detectable(null: dict, effects: list[str]) -> dict[str, float]:
+    """Each effect's minimum detectable size along the bench's direction, from a null's ``tested`` list."""
+    mde: dict[str, float] = {}
+    for t in null["tested"]:
+        e = t["effect"]
+        if e in effects and t["visible_fraction"] >= VISIBLE_MIN and sensor_of(e, t["sensor"]) \
+                and t.get("tau_s", WARMUP_TAU_S) == WARMUP_TAU_S:
+            d = direction(e)
+            lam = d @ np.asarray(t["information"]) @ d
+            mde[e] = min(mde.get(e, np.inf), float(np.sqrt(NONCENTRALITY_80 / lam)) if lam > 0 else np.inf)
+    return mde
+
+
+def injected_size(effect: str, mde: dict[str, float], factor: float) -> float | None:
+    """``factor`` x the effect's MDE; None where the protocol cannot see it. A thermal lag the null
+    cannot see is still injected, at ``LAG_S``: it shows as its own start-up after power-on."""
+    if effect == "thermal_lag":
+        return max(factor * mde.get(effect, 0.0), LAG_S)
+    m = mde.get(effect, np.inf)
+    return factor * m if np.isfinite(m) else None
+
+
+def regime_of(effect: str) -> str:
+    """The residual map's regime where ``effect`` shows (a warm-up shows at rest, along time since power-on)."""
+    return "motion" if effect in MOTION else "static"
+
+
+def top_cell_right(effect: str, cell: dict | None) -> bool:
+    """Whether the residual map's top-ranked cell is flagged and names the effect's sensor and regime."""
+    return bool(cell and cell["flagged"] and sensor_of(effect, cell["sensor"]) and cell["regime"] == regime_of(effect))
 
 
 def one_seed(args: tuple[str, int, list[str], float, str]) -> dict:
@@ -116,24 +151,16 @@ def one_seed(args: tuple[str, int, list[str], float, str]) -> dict:
         null = diagnose(protocol, seed, {}, folder)
     except Exception as exc:  # noqa: BLE001 - a bench reports failures and goes on
         return {"protocol": protocol, "seed": seed, "error": str(exc)}
-    mde = {}
-    for t in null["tested"]:
-        e = t["effect"]
-        if e in effects and t["visible_fraction"] >= VISIBLE_MIN and sensor_of(e, t["sensor"]) \
-                and t.get("tau_s", WARMUP_TAU_S) == WARMUP_TAU_S:
-            d = direction(e)
-            lam = d @ np.asarray(t["information"]) @ d
-            mde[e] = min(mde.get(e, np.inf), float(np.sqrt(NONCENTRALITY_80 / lam)) if lam > 0 else np.inf)
+    mde = minimum_detectable(null, effects)
     runs = []
     for e in effects:
-        unseen_lag = e == "thermal_lag" and not np.isfinite(mde.get(e, np.inf))  # seen by its own start-up
-        if not unseen_lag and (e not in mde or not np.isfinite(mde[e])):
+        a = injected_size(e, mde, factor)
+        if a is None:
             why = [n for n in null["not_identifiable"] if n["effect"] == e and sensor_of(e, n["sensor"])]
             runs.append({"effect": e, "skipped": "not identifiable on this protocol" + (
                 f" (visible {why[0]['visible_fraction']:.1%}, absorbed by {', '.join(why[0]['biases'])}; "
                 f"reveal with {why[0]['reveal_with']})" if why else "")})
             continue
-        a = max(factor * mde.get(e, 0.0), LAG_S) if e == "thermal_lag" else factor * mde[e]
         try:
             doc = diagnose(protocol, seed, {e: effect_params(e, a)}, folder)
         except Exception as exc:  # noqa: BLE001
@@ -141,11 +168,10 @@ def one_seed(args: tuple[str, int, list[str], float, str]) -> dict:
             continue
         named = [f for f in doc["findings"] if f["effect"] == e]
         top = doc["top_cell"]
-        regime = "motion" if e in MOTION else "warmup" if e == "warmup_transient" else "static"
         runs.append({
             "effect": e, "size": a, "named": bool(named),
             "wrong": [f["effect"] for f in doc["findings"] if f["effect"] not in (e, "unknown")],
-            "top_cell_right": bool(top and sensor_of(e, top["sensor"]) and top["regime"] in (regime, "all")),
+            "top_cell_right": top_cell_right(e, top),
             "top_cell": top and f"{top['sensor']}/{top['regime']}/{top['variable']}/{'-'.join(top['axes'])}",
             "fitted_over_true": fitted_size(e, named[0]["parameters"]) / a if named else None,
             "heldout_ratio": (named[0]["heldout_rms_after"] / named[0]["heldout_rms_before"]) if named else None,
@@ -190,11 +216,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--protocols", nargs="+", default=["gimbal", "standard"])
-    ap.add_argument("--effects", nargs="+", default=["lever_arm", "accel_gyro_time_offset", "accel_nonlinearity",
-                                                     "accel_scale_temperature", "gyro_g_sensitivity",
-                                                     "bias_temperature_nonlinear", "earth_rotation",
-                                                     "gyro_scale_temperature", "gyro_scale_asymmetry", "thermal_lag",
-                                                     "warmup_transient"])
+    ap.add_argument("--effects", nargs="+", default=EFFECTS)
     ap.add_argument("--factor", type=float, default=5.0)
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--out", type=Path, default=None)

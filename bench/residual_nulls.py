@@ -1,7 +1,7 @@
 """The residual map on simulated sessions: silent on nulls, pointing at the right cell when physics is missing.
 
     python bench/residual_nulls.py [--seeds 20] [--protocols standard sphere_rig gimbal]
-        [--effects] [--out DIR] [--jobs 2]
+        [--effects [--effect-seeds 5]] [--out DIR] [--jobs 2]     (--seeds 0: the effects only)
 
 Nulls: ``--seeds`` sessions of each protocol with the simulator's consumer-MEMS model
 (white noise, quantisation, turn-on bias, thermal drift) plus a bias random walk on
@@ -14,9 +14,10 @@ share with no cell flagged at BH q = 0.05 (target >= 95 %), with each block's me
 chi2/dof.
 
 ``--effects`` (after the nulls): each catalogue effect the protocol can see, at
-5x its minimum detectable effect (``bench/effect_mde.py`` computes the MDE from the
-expected information), and the share of runs whose top-ranked cell names the right
-sensor and regime (target >= 90 %).
+5x its minimum detectable size (from the expected information of seed 0's null
+diagnosis, ``bench/diagnosis.py``'s ``minimum_detectable``), on ``--effect-seeds``
+sessions each, and the share of runs whose top-ranked cell is flagged and names the
+effect's sensor and regime (target >= 90 %).
 """
 
 from __future__ import annotations
@@ -97,6 +98,33 @@ def report_nulls(results: list[dict]) -> None:
     print("targets: all blocks in band >= 90 % of runs; no cell flagged >= 95 % of runs")
 
 
+def effect_runs(protocols: list[str], seeds: int, folder: Path, jobs: int) -> None:
+    import diagnosis as dg  # the effects' sizes and directions (it imports this module: import here)
+
+    print(f"\nEFFECTS at 5x the minimum detectable size: top-ranked cell flagged, on the right sensor and regime")
+    print(f"{'protocol':<12}{'effect':<28}{'runs':>5}{'top cell right':>16}   wrong top cells")
+    for proto in protocols:
+        (folder / f"{proto}-mde").mkdir(parents=True, exist_ok=True)
+        mde = dg.minimum_detectable(dg.diagnose(proto, 0, {}, folder / f"{proto}-mde"), dg.EFFECTS)
+        sized = {e: dg.injected_size(e, mde, 5.0) for e in dg.EFFECTS}
+        runs = [(proto, s, {e: dg.effect_params(e, a)}, str(folder / f"{proto}-{e}-{s}"))
+                for e, a in sized.items() if a is not None for s in range(seeds)]
+        with ProcessPoolExecutor(jobs) as pool:
+            results = list(pool.map(one_run, runs))
+        for e, a in sized.items():
+            if a is None:
+                print(f"{proto:<12}{e:<28}    -   not identifiable on this protocol")
+                continue
+            rs = [r for r in results if e in r["effects"]]
+            right = [dg.top_cell_right(e, r.get("top")) for r in rs]
+            wrong = [f"seed {r['seed']}: " + (r["error"] if "error" in r else
+                     "none flagged" if not (r["top"] and r["top"]["flagged"]) else
+                     f"{r['top']['sensor']}/{r['top']['regime']}/{r['top']['variable']}")
+                     for r, ok in zip(rs, right) if not ok]
+            print(f"{proto:<12}{e:<28}{len(rs):>5}{np.mean(right):>16.0%}   {'; '.join(wrong)}")
+    print("target: top cell right >= 90 % of runs")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=20)
@@ -104,17 +132,22 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--effects", action="store_true")
+    ap.add_argument("--effect-seeds", type=int, default=5)
     args = ap.parse_args()
     folder = args.out or Path(tempfile.mkdtemp(prefix="residual-nulls-"))
     folder.mkdir(parents=True, exist_ok=True)
-    jobs = [(p, s, {}, str(folder / f"{p}-{s}")) for p in args.protocols for s in range(args.seeds)]
-    t = time.perf_counter()
-    with ProcessPoolExecutor(args.jobs) as pool:
-        results = list(pool.map(one_run, jobs))
-    (folder / "nulls.json").write_text(json.dumps(results, indent=1))
-    report_nulls(results)
-    secs = [r["seconds"] for r in results if "seconds" in r]
-    print(f"\n{len(results)} runs in {time.perf_counter() - t:.0f} s (pipeline {np.median(secs):.1f} s median per run); files in {folder}")
+    if args.seeds:
+        jobs = [(p, s, {}, str(folder / f"{p}-{s}")) for p in args.protocols for s in range(args.seeds)]
+        t = time.perf_counter()
+        with ProcessPoolExecutor(args.jobs) as pool:
+            results = list(pool.map(one_run, jobs))
+        (folder / "nulls.json").write_text(json.dumps(results, indent=1))
+        report_nulls(results)
+        secs = [r["seconds"] for r in results if "seconds" in r]
+        print(f"\n{len(results)} runs in {time.perf_counter() - t:.0f} s (pipeline {np.median(secs):.1f} s median per run); "
+              f"files in {folder}")
+    if args.effects:
+        effect_runs(args.protocols, args.effect_seeds, folder, args.jobs)
 
 
 if __name__ == "__main__":
