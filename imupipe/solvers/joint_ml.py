@@ -140,13 +140,25 @@ def _dT(rests: Rests) -> np.ndarray:
     return np.where(np.isfinite(rests.temperature), rests.temperature, T_REF_C) - T_REF_C
 
 
+WARMUP_TAU_S = 120.0  # the warm-up signal a walk may not take (the structure library's)
+
+
+def slow_signals(rests: Rests) -> np.ndarray:
+    """(n, 2) smooth bias signals of the rests a walk may not take: the temperature squared and a
+    warm-up exponential. A bias law left out of the model is deterministic; estimated as walk
+    intensity it would hide itself (the walk copies it for free) from the residual map and the
+    diagnosis that look for it."""
+    t_on = 0.5 * (rests.t_start_s + rests.t_end_s) - rests.t_start_s.min()
+    return np.column_stack([_dT(rests) ** 2, np.exp(-t_on / WARMUP_TAU_S)])
+
+
 def gyro_walk_intensity(rests: Rests, gyro: TriadCalibration, fit_k: bool,
                         sigma_rw: float | None) -> tuple[np.ndarray, float | None]:
     """(3,) gyro bias random-walk intensity, rad^2/s^3, and the rests' scatter beyond white
     noise without time correlation, (rad/s)^2 (None when not estimated): the configured
     ``sigma_rw`` (rad/s/sqrt(s)) squared, else REML from the rests' gyro means about the
-    start's ``b0 + k dT`` (level, gravity direction, and ``dT`` when ``k`` is fitted,
-    profiled out)."""
+    start's ``b0 + k dT`` (level, gravity direction, ``dT`` when ``k`` is fitted, and the
+    ``slow_signals`` profiled out)."""
     if sigma_rw is not None:
         return np.full(3, float(sigma_rw) ** 2), None
     dT = _dT(rests)
@@ -154,7 +166,7 @@ def gyro_walk_intensity(rests: Rests, gyro: TriadCalibration, fit_k: bool,
     # an attitude effect (g-sensitivity) is a regressor, not a walk: the residuals keep showing it
     a = rests.need("accel")
     X = np.column_stack([np.ones(len(rests)), a / np.linalg.norm(a, axis=1, keepdims=True),
-                         *([dT] if fit_k else [])])
+                         *([dT] if fit_k else []), slow_signals(rests)])
     var = np.diagonal(rests.cov_of_mean("gyro"), axis1=1, axis2=2)
     q, nu = estimate_intensity(rests.t_start_s, rests.t_end_s, resid, var, X)
     return np.full(3, q), nu
@@ -165,7 +177,9 @@ def accel_walk_intensity(rests: Rests, accel: TriadCalibration, gravity: float, 
     """(3,) accelerometer bias random-walk intensity, (m/s^2)^2/s per axis (isotropic): the
     configured ``sigma_rw`` squared, else REML from the rests' |g| errors under the start
     (a walk shows along gravity only: the tilt part is each rest's unknown direction), with
-    the accelerometer's own parameters (and ``dT`` when ``k`` is fitted) profiled out."""
+    the accelerometer's own parameters (and ``dT`` when ``k`` is fitted) profiled out. Not the
+    ``slow_signals``: seen along gravity only, the walk's evidence is too thin for six more
+    columns (on a gimbal null they took it whole, and the walk's wander then flagged the map)."""
     if sigma_rw is not None:
         return np.full(3, float(sigma_rw) ** 2)
     dT = _dT(rests)
@@ -197,7 +211,7 @@ class JointML:
 
     name = "joint_ml"
     kind = "joint"
-    version = "5"
+    version = "6"
     params: ClassVar[type[Params]] = JointMLParams
 
     def solve(self, observations: JointObservations, params: JointMLParams) -> JointFit:
