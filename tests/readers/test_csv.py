@@ -130,7 +130,7 @@ def test_pyarrow_and_polars_parses_agree_bit_for_bit(tmp_path, monkeypatch):
         f"{t[i]},{float(values[i, 0])!r},{values[i, 1]:.17e},{values[i, 2]:.6g}\n" for i in range(200)))
     refs = {"t": "t", "a": "a", "b": "b", "c": "c"}
     fast = read_columns(path, refs, int_keys=("t",))
-    assert csv_reader._number_columns(path, ",", 1, {"a": 1}, ()) is not None  # pyarrow's parse took it
+    assert csv_reader._number_columns(path, ",", 1, 4, {"a": 1}, ()) is not None  # pyarrow's parse took it
     monkeypatch.setattr(csv_reader, "_number_columns", lambda *args: None)  # polars' parse
     slow = read_columns(path, refs, int_keys=("t",))
     np.testing.assert_array_equal(fast["t"], t)
@@ -138,6 +138,11 @@ def test_pyarrow_and_polars_parses_agree_bit_for_bit(tmp_path, monkeypatch):
     for key in refs:
         assert fast[key].dtype == slow[key].dtype
         assert fast[key].tobytes() == slow[key].tobytes()
+
+
+def test_skip_lines_counts_blank_lines(tmp_path):
+    path = write(tmp_path / "x.csv", "\n\na,b\n1,2\n3,4\n5,6\n")  # two blank lines, then the header
+    np.testing.assert_array_equal(read_columns(path, {"x": "b"}, skip_lines=2)["x"], [2.0, 4.0, 6.0])
 
 
 def test_read_columns_names_the_known_columns(tmp_path):
