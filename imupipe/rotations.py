@@ -135,7 +135,7 @@ def quat_exp(phi: np.ndarray) -> np.ndarray:
     # sin(theta/2)/theta and cos(theta/2), with their series near zero; the sine and cosine
     # only where needed (padded turns are zero rotations)
     s, c = np.asarray(0.5 - theta2 / 48.0), np.asarray(1.0 - theta2 / 8.0)
-    big = ~(theta < _SMALL_ANGLE)
+    big = theta >= _SMALL_ANGLE
     t = theta[big]
     s[big] = np.sin(0.5 * t) / t
     c[big] = np.cos(0.5 * t)
