@@ -104,10 +104,10 @@ def _load_entry_points(pm: pluggy.PluginManager, broken: dict, dists: dict) -> N
     owners: dict[str, str] = {}
     found = []
     for dist in metadata.distributions():
-        dist_name = (dist.metadata["name"] or "").strip()
-        for ep in dist.entry_points:
-            if ep.group == ENTRY_POINT_GROUP:
-                found.append((dist_name != "imupipe", dist_name, dist.version, ep))
+        ours = [ep for ep in dist.entry_points if ep.group == ENTRY_POINT_GROUP]
+        if ours:  # only then its metadata: parsing every distribution's costs ~0.04 s
+            dist_name = (dist.metadata["name"] or "").strip()
+            found += [(dist_name != "imupipe", dist_name, dist.version, ep) for ep in ours]
     found.sort(key=lambda f: f[0])  # stable: the built-ins first
     for _, dist_name, version, ep in found:
         if pm.is_blocked(ep.name):

@@ -132,12 +132,17 @@ def quat_exp(phi: np.ndarray) -> np.ndarray:
     """Unit quaternions (..., 4) of rotation vectors ``phi`` (..., 3) rad."""
     theta2 = np.einsum("...i,...i->...", phi, phi)
     theta = np.sqrt(theta2)
-    small = theta < _SMALL_ANGLE
-    safe = np.where(small, 1.0, theta)
-    # sin(theta/2)/theta and cos(theta/2), with their series near zero.
-    s = np.where(small, 0.5 - theta2 / 48.0, np.sin(0.5 * safe) / safe)
-    c = np.where(small, 1.0 - theta2 / 8.0, np.cos(0.5 * safe))
-    return np.concatenate([c[..., None], s[..., None] * phi], axis=-1)
+    # sin(theta/2)/theta and cos(theta/2), with their series near zero; the sine and cosine
+    # only where needed (padded turns are zero rotations)
+    s, c = np.asarray(0.5 - theta2 / 48.0), np.asarray(1.0 - theta2 / 8.0)
+    big = theta >= _SMALL_ANGLE
+    t = theta[big]
+    s[big] = np.sin(0.5 * t) / t
+    c[big] = np.cos(0.5 * t)
+    q = np.empty((*phi.shape[:-1], 4), np.result_type(s, phi))
+    q[..., 0] = c
+    np.multiply(s[..., None], phi, out=q[..., 1:])
+    return q
 
 
 def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:

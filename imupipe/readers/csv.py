@@ -66,8 +66,6 @@ def read_columns(path: Path, refs: Mapping[str, ColumnRef], *, delimiter: str = 
     Raises ``ReaderError`` naming the file and the line for a missing column, an
     empty or unparseable value, or a non-finite value.
     """
-    import polars as pl  # here, not at module level: registering the readers stays cheap
-
     if not path.is_file():
         raise ReaderError(f"{path}: no such file")
     if path.stat().st_size == 0:
@@ -83,6 +81,12 @@ def read_columns(path: Path, refs: Mapping[str, ColumnRef], *, delimiter: str = 
         lines = path.read_bytes().split(b"\n")
         source, sep = io.BytesIO(b"\n".join(b",".join(line.split()) for line in lines)), ","
     width = len(names) if header else len(split_fields(first_line(path, skip_lines), delimiter))
+    numbers = _number_columns(source, sep, skip_lines + header, width, indices, int_keys)
+    if numbers is not None:
+        return numbers
+    # Something is off (or unusual): polars parses it, as text if need be, and says where.
+    import polars as pl  # here, not at module level: registering the readers stays cheap
+
     dtypes = {i: pl.Float64 for i in indices.values()}
     dtypes.update({indices[k]: pl.Int64 for k in int_keys if k in indices})
     frame = _typed_frame(source, sep, header, skip_lines, width, dtypes)
@@ -121,9 +125,42 @@ def read_columns(path: Path, refs: Mapping[str, ColumnRef], *, delimiter: str = 
     return out
 
 
+def _number_columns(source: Path | io.BytesIO, sep: str, skip_rows: int, width: int,
+                    indices: Mapping[str, int], int_keys: tuple[str, ...]) -> dict[str, np.ndarray] | None:
+    """The fast path (pyarrow's CSV parser, already loaded): key -> the wanted column as
+    numbers; None on any trouble: a row without ``width`` fields, a blank line, an empty,
+    missing or non-finite value."""
+    import pyarrow.csv as pcsv
+
+    types = {f"f{i}": pa.float64() for i in indices.values()}
+    types.update({f"f{indices[k]}": pa.int64() for k in int_keys if k in indices})
+    names = [f"f{i}" for i in range(width)]
+    try:
+        table = pcsv.read_csv(
+            source, read_options=pcsv.ReadOptions(skip_rows=skip_rows, column_names=names),
+            parse_options=pcsv.ParseOptions(delimiter=sep, ignore_empty_lines=False),
+            convert_options=pcsv.ConvertOptions(column_types=types, include_columns=list(types)))
+    except (pa.ArrowException, OSError, ValueError):  # ValueError: a non-ASCII delimiter
+        return None
+    finally:
+        if isinstance(source, io.BytesIO):
+            source.seek(0)
+    if not table.num_rows:
+        return None
+    out = {}
+    for key, index in indices.items():
+        column = table.column(f"f{index}")
+        if column.null_count:
+            return None
+        out[key] = column.to_numpy()
+        if key not in int_keys and not np.isfinite(out[key]).all():
+            return None
+    return out
+
+
 def _typed_frame(source: Path | io.BytesIO, sep: str, header: bool, skip_lines: int, width: int,
                  dtypes: dict[int, pl.DataType]) -> pl.DataFrame | None:
-    """The fast path: parse the wanted columns as numbers; None on any trouble or empty value."""
+    """Polars' typed parse of the wanted columns; None on any trouble or empty value."""
     import polars as pl
 
     schema = {f"c{i}": dtypes.get(i, pl.String) for i in range(width)}

@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 import pyarrow as pa
 
+from .spans import shade
+
 GRAVITY_CELLS = ("+x up", "-x up", "+y up", "-y up", "+z up", "-z up")
 
 
@@ -102,14 +104,11 @@ def draw_time_series(fig, samples: pa.Table, doc: dict, every: int = 5) -> None:
         ts, ws, ks = t[m], w[m], kind[m]
         rest = ks == "rest"
         edges = np.flatnonzero(np.diff(np.r_[0, rest.astype(int), 0]))
-        for a, b in zip(edges[0::2], edges[1::2], strict=True):
-            ax.axvspan(ts[a] / 60, ts[b - 1] / 60, color="0.9", lw=0)
+        shade(ax, ts[edges[0::2]] / 60, ts[edges[1::2] - 1] / 60, color="0.9", lw=0)
         for i, c in enumerate("xyz"):
             ax.plot(ts[::every] / 60, ws[::every, i], ".", ms=1, alpha=0.5, label=c)
-        for c in flagged:
-            if c["sensor"] == s:
-                for w0, w1 in c["windows"]:
-                    ax.axvspan(w0 / 60, w1 / 60, color="r", alpha=0.2, lw=0)
+        windows = np.array([w for c in flagged if c["sensor"] == s for w in c["windows"]]).reshape(-1, 2)
+        shade(ax, windows[:, 0] / 60, windows[:, 1] / 60, color="r", alpha=0.2, lw=0)
         for e in doc["events"]:
             if e["sensor"] in (s, "all"):
                 ax.axvline(e["window"][0] / 60, color="m", lw=0.8)

@@ -7,6 +7,8 @@ import json
 import numpy as np
 import pyarrow as pa
 
+from .spans import shade
+
 
 def summary(table: pa.Table) -> dict:
     return json.loads((table.schema.metadata or {}).get(b"imupipe.segmentation", b"{}"))
@@ -44,8 +46,7 @@ def draw(fig, table: pa.Table) -> None:
     rest = table.column("rest").to_numpy(zero_copy_only=False).astype(bool)
     edges = np.flatnonzero(np.diff(np.r_[0, rest.astype(int), 0]))
     for ax, sensor, scale, unit in ((axes[0], "accel", 1.0, "m/s^2"), (axes[1], "gyro", 180 / np.pi, "deg/s")):
-        for a, b in zip(edges[0::2], edges[1::2], strict=True):
-            ax.axvspan(t[a], t[b - 1], color="0.85", lw=0)
+        shade(ax, t[edges[0::2]], t[edges[1::2] - 1], color="0.85", lw=0)
         for c in "xyz":
             ax.plot(t, table.column(f"{sensor}_{c}").to_numpy() * scale, lw=0.6, label=c)
         ax.set_ylabel(f"{sensor}, {unit}", fontsize=8)

@@ -13,6 +13,7 @@ from imupipe.cli import main
 from imupipe.errors import ReaderError
 from imupipe.ingest import read_recording
 from imupipe.plugins import make_registry
+from imupipe.readers import csv as csv_reader
 from imupipe.readers.csv import CanonicalCsvReader, read_columns
 
 HEADER = "t_ns,accel_x,accel_y,accel_z,gyro_x,gyro_y,gyro_z,mag_x,mag_y,mag_z,temperature"
@@ -119,6 +120,29 @@ def test_read_columns_skips_lines_and_uses_other_delimiters(tmp_path):
     path = write(tmp_path / "x.csv", "Fs;100\nnote;x\na;b\n1;2\n3;4\n")
     data = read_columns(path, {"x": "b"}, delimiter=";", skip_lines=2)
     np.testing.assert_array_equal(data["x"], [2.0, 4.0])
+
+
+def test_pyarrow_and_polars_parses_agree_bit_for_bit(tmp_path, monkeypatch):
+    rng = np.random.default_rng(5)
+    values = rng.normal(scale=10.0 ** rng.integers(-9, 9, size=(200, 3)))
+    t = 1_700_000_000_000_000_000 + np.arange(200, dtype=np.int64) * 9_999_991
+    path = write(tmp_path / "x.csv", "t,a,b,c\n" + "".join(
+        f"{t[i]},{float(values[i, 0])!r},{values[i, 1]:.17e},{values[i, 2]:.6g}\n" for i in range(200)))
+    refs = {"t": "t", "a": "a", "b": "b", "c": "c"}
+    fast = read_columns(path, refs, int_keys=("t",))
+    assert csv_reader._number_columns(path, ",", 1, 4, {"a": 1}, ()) is not None  # pyarrow's parse took it
+    monkeypatch.setattr(csv_reader, "_number_columns", lambda *args: None)  # polars' parse
+    slow = read_columns(path, refs, int_keys=("t",))
+    np.testing.assert_array_equal(fast["t"], t)
+    np.testing.assert_array_equal(fast["a"], values[:, 0])
+    for key in refs:
+        assert fast[key].dtype == slow[key].dtype
+        assert fast[key].tobytes() == slow[key].tobytes()
+
+
+def test_skip_lines_counts_blank_lines(tmp_path):
+    path = write(tmp_path / "x.csv", "\n\na,b\n1,2\n3,4\n5,6\n")  # two blank lines, then the header
+    np.testing.assert_array_equal(read_columns(path, {"x": "b"}, skip_lines=2)["x"], [2.0, 4.0, 6.0])
 
 
 def test_read_columns_names_the_known_columns(tmp_path):
