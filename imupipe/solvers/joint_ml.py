@@ -225,7 +225,8 @@ class JointML:
         fit_k = model.fit_k
         lin = fit(model, max_iter=params.max_nfev)
         blocks = lin.blocks()
-        if np.linalg.cond(lin.system.S) > 1e14:
+        d = np.sqrt(np.clip(np.diag(lin.system.S), 1e-300, None))  # scale-free: raw counts are units too
+        if np.linalg.cond(lin.system.S / np.outer(d, d)) > 1e14:
             raise SolverError(f"joint_ml: the rests and turns do not determine all {model.glob.size} "
                               "constants; record rests over the whole sphere and turns about all three axes"
                               + (" (or set fit_temperature = 'no')" if fit_k else ""))
