@@ -29,12 +29,12 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.stats import chi2 as chi2_dist
 
-from ..solvers.joint_ml import WARMUP_TAU_S
 from .linearised import Linearised
 from .residual_map import windows
 from .select import BOOT_DRAWS, Q_FDR, VISIBLE_MIN, Signals, block_wild_p, rigid_walks, time_blocks
 
 AXES = ("x", "y", "z")
+WARMUP_TAU_S = 120.0
 CHUNK = 8192  # readings whose library columns are formed at once
 INFO_MIN = 1e-6  # a direction with less of its information left than this is not tested (numerically nil)
 _PAIRS = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]

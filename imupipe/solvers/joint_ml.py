@@ -140,16 +140,13 @@ def _dT(rests: Rests) -> np.ndarray:
     return np.where(np.isfinite(rests.temperature), rests.temperature, T_REF_C) - T_REF_C
 
 
-WARMUP_TAU_S = 120.0  # the warm-up signal a walk may not take (the structure library's)
-
-
 def slow_signals(rests: Rests) -> np.ndarray:
-    """(n, 2) smooth bias signals of the rests a walk may not take: the temperature squared and a
-    warm-up exponential. A bias law left out of the model is deterministic; estimated as walk
-    intensity it would hide itself (the walk copies it for free) from the residual map and the
-    diagnosis that look for it."""
-    t_on = 0.5 * (rests.t_start_s + rests.t_end_s) - rests.t_start_s.min()
-    return np.column_stack([_dT(rests) ** 2, np.exp(-t_on / WARMUP_TAU_S)])
+    """(n, 1) the smooth bias signal of the rests a walk may not take: the temperature squared. A
+    bias law left out of the model is deterministic; estimated as walk intensity it would hide
+    itself (the walk copies it for free) from the residual map and the diagnosis that look for it.
+    Not a warm-up exponential: it takes the long first rest's level, where much of a walk's
+    evidence lies (on a standard null the walk then came out 0 and its wander flagged the map)."""
+    return _dT(rests)[:, None] ** 2
 
 
 def gyro_walk_intensity(rests: Rests, gyro: TriadCalibration, fit_k: bool,
