@@ -223,7 +223,8 @@ def judged(effect: str, size: float, findings: list[dict]) -> dict:
 def run(protocol: str, seed: int, kind: str, sizes: dict[str, float], factor: float | None, folder: Path,
         sim_seed: int | None = None) -> dict:
     """One blind diagnosis of ``sizes`` (effect: size) injected; ``kind``: effect, trap, absorbed, pair, null."""
-    rec = {"kind": kind, "protocol": protocol, "seed": seed, "factor": factor, "sizes": sizes}
+    rec = {"kind": kind, "protocol": protocol, "seed": seed, "sim_seed": seed if sim_seed is None else sim_seed,
+           "factor": factor, "sizes": sizes}
     tag = "" if factor is None else f"-{factor:g}x"
     try:
         doc = diagnose(protocol, seed if sim_seed is None else sim_seed,
@@ -262,8 +263,9 @@ def one_seed(args: tuple[str, int, list[str], list[float], int, str]) -> dict:
         null = diagnose(protocol, seed, {}, folder)
     except Exception as exc:  # noqa: BLE001
         return {"protocol": protocol, "seed": seed, "error": str(exc)}
-    runs = [{"kind": "null", "protocol": protocol, "seed": seed, "factor": None, "sizes": {}, "effects": {},
-             "findings": [f["effect"] for f in null["findings"]], "candidates": [], "seconds": null["seconds"]}]
+    runs = [{"kind": "null", "protocol": protocol, "seed": seed, "sim_seed": seed, "factor": None, "sizes": {},
+             "effects": {}, "findings": [f["effect"] for f in null["findings"]], "candidates": [],
+             "seconds": null["seconds"]}]
     runs += [run(protocol, seed, "null", {}, None, folder, seed + k * NULL_SEEDS) for k in range(1, extra_nulls + 1)]
     runs += [run(protocol, seed, kind, sizes, f, folder) for kind, sizes, f in plan(null, effects, factors)]
     skipped = {e: absorbed(null, e) for e in effects if e not in {x for r in runs for x in r["sizes"]}}
@@ -284,7 +286,10 @@ def share(k: int, n: int) -> str:
 
 
 def verdict(value: float, lo: float = -np.inf, hi: float = np.inf) -> str:
-    return "-" if not np.isfinite(value) else "PASS" if lo <= value <= hi else "MISS"
+    """PASS or MISS of ``value`` against ``[lo, hi]``; ``-`` without a value or a target."""
+    if not np.isfinite(value) or (lo, hi) == (-np.inf, np.inf):
+        return "-"
+    return "PASS" if lo <= value <= hi else "MISS"
 
 
 def answered(x: dict) -> bool:
@@ -318,7 +323,7 @@ def report(results: list[dict]) -> dict[str, tuple[str, str, str]]:
         anyf = [x for x in ns if x["findings"]]
         print(f"  {proto:<10} {share(*ratio([bool(x['findings']) for x in ns]))} with a finding "
               f"({sum(answered(x) for x in ns)} naming a catalogue effect)"
-              + "".join(f"\n    seed {x['seed']}: {x['findings']}" for x in anyf))
+              + "".join(f"\n    seed {x['sim_seed']}: {x['findings']}" for x in anyf))
     print("\nEFFECTS alone at factor x their minimum detectable size (power: any finding; right: of runs naming "
           "catalogue effects, the injected one, or for a trap an unknown naming it and a rival)")
     print(f"{'protocol':<10}{'effect':<30}{'x':>4}{'runs':>5}{'power':>7}{'named':>7}{'right':>7}{'wrong':>7}"
@@ -428,7 +433,8 @@ def main() -> None:
         rs = [r for r in results if r["protocol"] == proto and "runs" in r]
         per_run = median([x.get("seconds") for r in rs for x in r["runs"]])
         print(f"{proto}: {median([r['seconds'] for r in rs]):.0f} s per seed "
-              f"({median([len(r['runs']) for r in rs]):.0f} sessions, {per_run:.0f} s per diagnosis)")
+              f"({median([len(r['runs']) for r in rs]):.0f} sessions, {per_run:.0f} s per diagnosis "
+              "without its simulation)")
     print(f"\n{len(jobs)} seeds in {time.perf_counter() - t:.0f} s; files in {folder}")
 
 
