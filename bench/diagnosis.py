@@ -307,6 +307,10 @@ def wrong(x: dict) -> list[str]:
     return [f for f in x["findings"] if f not in ("unknown", *map(identifier, x["sizes"]))]
 
 
+def pct(value: float) -> str:
+    return f"{value:.0%}" if np.isfinite(value) else "-"
+
+
 def median(values: list) -> float:
     values = [v for v in values if v is not None]
     return float(np.median(values)) if values else float("nan")
@@ -341,7 +345,7 @@ def report(results: list[dict]) -> dict[str, tuple[str, str, str]]:
                 ans = [x for x in xs if answered(x)]
                 print(f"{proto:<10}{e:<30}{f:>4g}{len(xs):>5}{np.mean([bool(x['findings']) for x in xs]):>7.0%}"
                       f"{np.mean([j['named'] for j in js]):>7.0%}"
-                      f"{(np.mean([right(x, e) for x in ans]) if ans else np.nan):>7.0%}"
+                      f"{pct(np.mean([right(x, e) for x in ans]) if ans else np.nan):>7}"
                       f"{np.mean([bool(wrong(x)) for x in xs]):>7.0%}{np.mean([x['top_cell_right'] for x in xs]):>6.0%}"
                       f"{median([j.get('fitted_over_true') for j in js]):>9.3f}"
                       f"{(f'{sum(cov)}/{len(cov)}' if cov else '-'):>8}{median([j.get('heldout_ratio') for j in js]):>9.4f}"
@@ -376,7 +380,7 @@ def summary(runs: list[dict]) -> dict[str, tuple[str, str, str]]:
     def one(xs: list[dict]) -> list[tuple[dict, str]]:
         return [(x, e) for x in xs for e in x["sizes"]]
 
-    def rate(hits: list[bool], lo: float = -np.inf, hi: float = np.inf, target: str = "") -> tuple[str, str, str]:
+    def rate(hits: list[bool], lo: float = -np.inf, hi: float = np.inf, target: str = "-") -> tuple[str, str, str]:
         k, n = ratio(hits)
         return share(k, n), target, verdict(k / n if n else np.nan, lo, hi)
 
@@ -398,9 +402,10 @@ def summary(runs: list[dict]) -> dict[str, tuple[str, str, str]]:
         "held-out chi2/n after, whitened terms": (f"{median(whitened):.3f} over {len(whitened)}", "-", "-"),
         "absorbed: discoveries": rate([x["effects"][e]["named"] for x, e in one(of("absorbed"))], hi=0.05,
                                       target="<= 5 %"),
+        "absorbed: any finding (also unknown)": rate([bool(x["findings"]) for x in of("absorbed")]),
         "absorbed: listed not_identifiable": rate([e in x["not_identifiable"] for x, e in one(of("absorbed"))],
                                                   lo=0.80, target=">= 80 %"),
-        "pairs: both named": rate([all(j["named"] for j in x["effects"].values()) for x in of("pair")], target="-"),
+        "pairs: both named": rate([all(j["named"] for j in x["effects"].values()) for x in of("pair")]),
     }
 
 
