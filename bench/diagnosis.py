@@ -213,9 +213,10 @@ def judged(effect: str, size: float, findings: list[dict]) -> dict:
     if f is None:
         return out
     key = KEY[identifier(effect)]
+    sd = f.get("parameters_sd", {}).get(key)
     before, after, z = f["heldout_rms_before"], f["heldout_rms_after"], f["heldout_z"]
     return out | {"fitted_over_true": fitted_size(effect, f["parameters"]) / size,
-                  "covered": covered(f["parameters"][key], f["parameters_sd"][key], effect_params(effect, size)[key]),
+                  "covered": [] if sd is None else covered(f["parameters"][key], sd, effect_params(effect, size)[key]),
                   "heldout_ratio": after / before, "heldout_z": z,
                   "heldout_chi2_n": after ** 2 if identifier(effect) in WHITENED_HELDOUT else None}
 
@@ -348,7 +349,8 @@ def report(results: list[dict]) -> dict[str, tuple[str, str, str]]:
                       f"{pct(np.mean([right(x, e) for x in ans]) if ans else np.nan):>7}"
                       f"{np.mean([bool(wrong(x)) for x in xs]):>7.0%}{np.mean([x['top_cell_right'] for x in xs]):>6.0%}"
                       f"{median([j.get('fitted_over_true') for j in js]):>9.3f}"
-                      f"{(f'{sum(cov)}/{len(cov)}' if cov else '-'):>8}{median([j.get('heldout_ratio') for j in js]):>9.4f}"
+                      f"{(f'{sum(cov)}/{len(cov)}' if cov else '-'):>8}"
+                      f"{median([j.get('heldout_ratio') for j in js]):>9.4f}"
                       f"{median([m.get(e) for m in mde]):>10.3g}  {mode(e)}")
     for r in results:
         for e, why in r.get("skipped", {}).items():
