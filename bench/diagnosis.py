@@ -317,6 +317,11 @@ def median(values: list) -> float:
     return float(np.median(values)) if values else float("nan")
 
 
+def of_median(values: list) -> str:
+    """``median over n``; ``-`` without values."""
+    return f"{median(values):.4f} over {len(values)}" if values else "-"
+
+
 def report(results: list[dict]) -> dict[str, tuple[str, str, str]]:
     """Print the tables; return the summary (criterion: measured, target, verdict)."""
     runs = [x for r in results if "runs" in r for x in r["runs"] if "error" not in x]
@@ -399,9 +404,9 @@ def summary(runs: list[dict]) -> dict[str, tuple[str, str, str]]:
         "naming accuracy, traps": rate([right(x, e) for x, e in one(of("trap")) if answered(x)], lo=0.80,
                                        target=">= 80 %"),
         "95 % interval coverage": rate([c for j in named for c in j["covered"]], 0.90, 0.98, "90-98 %"),
-        "held-out RMS after/before (median)": (f"{median([j['heldout_ratio'] for j in named]):.4f} over {len(named)}",
-                                               "< 1", verdict(median([j["heldout_ratio"] for j in named]), hi=1.0)),
-        "held-out chi2/n after, whitened terms": (f"{median(whitened):.3f} over {len(whitened)}", "-", "-"),
+        "held-out RMS after/before (median)": (of_median([j["heldout_ratio"] for j in named]), "< 1",
+                                               verdict(median([j["heldout_ratio"] for j in named]), hi=1.0)),
+        "held-out chi2/n after, whitened terms": (of_median(whitened), "-", "-"),
         "absorbed: discoveries": rate([x["effects"][e]["named"] for x, e in one(of("absorbed"))], hi=0.05,
                                       target="<= 5 %"),
         "absorbed: any finding (also unknown)": rate([bool(x["findings"]) for x in of("absorbed")]),
