@@ -176,9 +176,9 @@ def minimum_detectable(null: dict, effects: list[str]) -> dict[str, float]:
 def injected_size(effect: str, mde: dict[str, float], factor: float) -> float | None:
     """``factor`` x the effect's MDE; None where the protocol cannot see it. A thermal lag the null
     cannot see is still injected, at ``LAG_S``: it shows as its own start-up after power-on."""
-    if effect == "thermal_lag":
-        return max(factor * mde.get(effect, 0.0), LAG_S)
     m = mde.get(effect, np.inf)
+    if effect == "thermal_lag":
+        return max(factor * m, LAG_S) if np.isfinite(m) else LAG_S
     return factor * m if np.isfinite(m) else None
 
 
@@ -245,8 +245,11 @@ def run(protocol: str, seed: int, kind: str, sizes: dict[str, float], factor: fl
 def plan(null: dict, effects: list[str], factors: list[float]) -> list[tuple[str, dict[str, float], float | None]]:
     """The seed's blind runs: ``(kind, {effect: size}, factor)``."""
     mde = minimum_detectable(null, effects)
-    runs = [("trap" if e in TRAPS else "effect", {e: injected_size(e, mde, f)}, f)
-            for f in factors for e in effects if injected_size(e, mde, f) is not None]
+    runs = []
+    for e in effects:  # one not sized by an MDE (a lag the null cannot see) once, at its own size
+        sizes = {f: injected_size(e, mde, f) for f in factors} if np.isfinite(mde.get(e, np.inf)) \
+            else {None: injected_size(e, mde, 1.0)}
+        runs += [("trap" if e in TRAPS else "effect", {e: a}, f) for f, a in sizes.items() if a is not None]
     runs += [("absorbed", {e: TYPICAL[e]}, None) for e in effects
              if injected_size(e, mde, 1.0) is None and absorbed(null, e) and e in TYPICAL]
     top = max(factors)
@@ -342,14 +345,14 @@ def report(results: list[dict]) -> dict[str, tuple[str, str, str]]:
     for proto in protocols:
         mde = [r["mde"] for r in results if r.get("protocol") == proto and "mde" in r]
         for e in dict.fromkeys(e for x in single if x["protocol"] == proto for e in x["sizes"]):
-            for f in sorted({x["factor"] for x in single}):
+            for f in sorted({x["factor"] for x in single}, key=lambda f: -1 if f is None else f):
                 xs = [x for x in single if x["protocol"] == proto and e in x["sizes"] and x["factor"] == f]
                 if not xs:
                     continue
                 js = [x["effects"][e] for x in xs]
                 cov = [c for j in js for c in j.get("covered", [])]
                 ans = [x for x in xs if answered(x)]
-                print(f"{proto:<10}{e:<30}{f:>4g}{len(xs):>5}{np.mean([bool(x['findings']) for x in xs]):>7.0%}"
+                print(f"{proto:<10}{e:<30}{'-' if f is None else f'{f:g}':>4}{len(xs):>5}{np.mean([bool(x['findings']) for x in xs]):>7.0%}"
                       f"{np.mean([j['named'] for j in js]):>7.0%}"
                       f"{pct(np.mean([right(x, e) for x in ans]) if ans else np.nan):>7}"
                       f"{np.mean([bool(wrong(x)) for x in xs]):>7.0%}{np.mean([x['top_cell_right'] for x in xs]):>6.0%}"
