@@ -39,7 +39,7 @@ The thermal lag is injected at no less than ``LAG_S`` (four times the temperatur
 scale: shorter lags are rejected as read-out artefacts), and at that size where the null says it
 cannot be seen: in a first-order warm-up the read-out's rate is affine in its temperature, so the
 null's column is absorbed, while a real lag shows as its own start-up after power-on (so it is
-not an "absorbed" case). Not built: the memo's out-of-catalogue mode (the simulator has no
+not an "absorbed" case); such a lag is injected once (factor ``-``: not a multiple of an MDE). Not built: the memo's out-of-catalogue mode (the simulator has no
 effect outside the catalogue, e.g. a per-axis size effect).
 """
 
