@@ -5,6 +5,8 @@ from __future__ import annotations
 import importlib.util
 from pathlib import Path
 
+import numpy as np
+
 BENCH = Path(__file__).resolve().parents[2] / "bench"
 
 
@@ -30,10 +32,10 @@ def test_interval_is_estimate_plus_minus_1_96_sd(monkeypatch):
 def test_trap_right_when_unknown_names_it_and_a_rival(monkeypatch):
     b = _bench(monkeypatch)
     lag = {"effect": "unknown", "sensor": "gyro", "parameters": {"candidates": ["warmup_transient", "thermal_lag"]}}
-    assert b.judged("thermal_lag", 120.0, [lag])["unresolved"]
-    assert not b.judged("lever_arm", 1e-3, [lag])["unresolved"]
+    assert b.judged("thermal_lag", 120.0, [lag], np.eye(3))["unresolved"]
+    assert not b.judged("lever_arm", 1e-3, [lag], np.eye(3))["unresolved"]
     wrong_sensor = {"effect": "bias_temperature_nonlinear", "sensor": "accel", "parameters": {}}
-    assert not b.judged("bias_temperature_nonlinear", 1e-6, [wrong_sensor])["named"]
+    assert not b.judged("bias_temperature_nonlinear", 1e-6, [wrong_sensor], np.eye(3))["named"]
 
 
 def test_summary_counts_each_criterion_over_its_runs(monkeypatch):
@@ -55,3 +57,13 @@ def test_summary_counts_each_criterion_over_its_runs(monkeypatch):
     assert s["95 % interval coverage"][0].startswith("2/3 ")
     assert s["absorbed: discoveries"][0].startswith("0/1 ") and s["absorbed: discoveries"][2] == "PASS"
     assert s["absorbed: listed not_identifiable"][2] == "PASS"
+
+
+def test_calibration_frame_is_the_rotation_between_the_truth_and_the_calibration(monkeypatch):
+    b = _bench(monkeypatch)
+    S = np.array([[0.97, -0.016, -0.01], [-0.023, 0.99, 0.002], [-0.013, 0.007, 1.006]])
+    c, s = np.cos(0.019), np.sin(0.019)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    M = R @ np.linalg.inv(S)
+    frame = b.calibration_frame({"imu": {"accel": {"S": S.tolist()}}}, {"accel": {"M": M.tolist()}})
+    np.testing.assert_allclose(frame, R, atol=1e-12)
