@@ -80,9 +80,11 @@ def test_diagnose_refuses_a_pipeline_without_a_residual_map(tmp_path, capsys):
     assert "no map_residuals stage" in capsys.readouterr().err
 
 
-def test_earth_rate_is_named_as_such_not_as_an_isotropic_g_sensitivity(tmp_path):
-    # at rest Earth's vertical rate is G = (Omega sin(lat) / g) I: the one-column name wins
+def test_earth_rate_is_reported_as_the_naming_trap_it_is_at_rest(tmp_path):
+    # at rest Earth's vertical rate is G = (Omega sin(lat) / g) I: without the latitude neither is
+    # named; the one-column fit gives the latitude it would be
     doc, _ = _diagnosis(tmp_path, {"earth_rotation": {"latitude_deg": 55.75}})
-    gyro = [f for f in doc["findings"] if f["sensor"] == "gyro" and f["effect"] != "unknown"]
-    assert [f["effect"] for f in gyro] == ["earth_rotation"], doc["findings"]
-    assert 40 < gyro[0]["parameters"]["latitude_deg"] < 75
+    gyro = [f for f in doc["findings"] if f["sensor"] == "gyro" and "candidates" in f["parameters"]]
+    assert [f["parameters"]["candidates"] for f in gyro] == [["earth_rotation", "gyro_g_sensitivity"]], doc["findings"]
+    assert 40 < gyro[0]["parameters"]["earth_rotation"]["latitude_deg"] < 75
+    assert not [f for f in doc["findings"] if f["effect"] in ("earth_rotation", "gyro_g_sensitivity")]
