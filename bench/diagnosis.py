@@ -60,7 +60,7 @@ from imupipe.effects.earth_rotation import EARTH_RATE
 from imupipe.pipeline.api import run_sessions
 from imupipe.sim.api import simulate
 
-from residual_nulls import PIPELINE, realistic_imu
+from residual_nulls import PIPELINE, realistic_imu, tidy
 
 G = 9.80665
 UNIT = np.array([1.0, -1.0, 1.0]) / np.sqrt(3)
@@ -159,6 +159,7 @@ def diagnose(protocol: str, seed: int, effects: dict, folder: Path, tag: str = "
     doc["seconds"] = time.perf_counter() - t
     truth = json.loads(path.with_name(path.name + ".truth.json").read_text())
     doc["frame"] = calibration_frame(truth, json.loads((out / path.stem / "calibration.json").read_text()))
+    tidy(path, out)
     return doc
 
 

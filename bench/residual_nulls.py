@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -62,9 +63,18 @@ def one_run(args: tuple[str, int, dict, str]) -> dict:
     except Exception as exc:  # noqa: BLE001 - a bench reports failures and goes on
         return {"protocol": protocol, "seed": seed, "effects": effects, "error": str(exc)}
     doc = json.loads((out / path.stem / "residual_map.json").read_text())
+    tidy(path, out)
     return {"protocol": protocol, "seed": seed, "effects": effects, "seconds": time.perf_counter() - t,
             "blocks": doc["blocks"], "flagged": [c for c in doc["cells"] if c["flagged"]],
             "top": doc["cells"][0] if doc["cells"] else None, "events": doc["events"]}
+
+
+def tidy(path: Path, out: Path) -> None:
+    """Keep a run's documents, not its bulk (the recording, the per-sample table, the cache:
+    ~100 MB a session; hundreds of sessions fill a disk)."""
+    path.unlink(missing_ok=True)
+    (out / path.stem / "residuals.parquet").unlink(missing_ok=True)
+    shutil.rmtree(out / ".cache", ignore_errors=True)
 
 
 def in_band(block: dict) -> bool:
