@@ -140,22 +140,19 @@ def _dT(rests: Rests) -> np.ndarray:
     return np.where(np.isfinite(rests.temperature), rests.temperature, T_REF_C) - T_REF_C
 
 
-def slow_signals(rests: Rests) -> np.ndarray:
-    """(n, 1) the smooth bias signal of the rests a walk may not take: the temperature squared. A
-    bias law left out of the model is deterministic; estimated as walk intensity it would hide
-    itself (the walk copies it for free) from the residual map and the diagnosis that look for it.
-    Not a warm-up exponential: it takes the long first rest's level, where much of a walk's
-    evidence lies (on a standard null the walk then came out 0 and its wander flagged the map)."""
-    return _dT(rests)[:, None] ** 2
-
-
 def gyro_walk_intensity(rests: Rests, gyro: TriadCalibration, fit_k: bool,
                         sigma_rw: float | None) -> tuple[np.ndarray, float | None]:
     """(3,) gyro bias random-walk intensity, rad^2/s^3, and the rests' scatter beyond white
     noise without time correlation, (rad/s)^2 (None when not estimated): the configured
     ``sigma_rw`` (rad/s/sqrt(s)) squared, else REML from the rests' gyro means about the
-    start's ``b0 + k dT`` (level, gravity direction, ``dT`` when ``k`` is fitted, and the
-    ``slow_signals`` profiled out)."""
+    start's ``b0 + k dT`` (level, gravity direction, ``dT`` when ``k`` is fitted, and ``dT^2``
+    profiled out).
+
+    ``dT^2``: a bias law left out of the model is deterministic; taken as walk intensity it hides
+    itself (the walk copies it for free) from the residual map and the diagnosis that look for
+    it. Where profiling it leaves no walk at all, the walk's own evidence was the slow part the
+    law took (a walk and a smooth law are not told apart over a few long rests), and the estimate
+    without it stands: a walk set to zero would flag its own wander as misfit."""
     if sigma_rw is not None:
         return np.full(3, float(sigma_rw) ** 2), None
     dT = _dT(rests)
@@ -163,9 +160,11 @@ def gyro_walk_intensity(rests: Rests, gyro: TriadCalibration, fit_k: bool,
     # an attitude effect (g-sensitivity) is a regressor, not a walk: the residuals keep showing it
     a = rests.need("accel")
     X = np.column_stack([np.ones(len(rests)), a / np.linalg.norm(a, axis=1, keepdims=True),
-                         *([dT] if fit_k else []), slow_signals(rests)])
+                         *([dT] if fit_k else [])])
     var = np.diagonal(rests.cov_of_mean("gyro"), axis1=1, axis2=2)
-    q, nu = estimate_intensity(rests.t_start_s, rests.t_end_s, resid, var, X)
+    q, nu = estimate_intensity(rests.t_start_s, rests.t_end_s, resid, var, np.column_stack([X, dT ** 2]))
+    if q == 0:
+        q, nu = estimate_intensity(rests.t_start_s, rests.t_end_s, resid, var, X)
     return np.full(3, q), nu
 
 
@@ -174,9 +173,9 @@ def accel_walk_intensity(rests: Rests, accel: TriadCalibration, gravity: float, 
     """(3,) accelerometer bias random-walk intensity, (m/s^2)^2/s per axis (isotropic): the
     configured ``sigma_rw`` squared, else REML from the rests' |g| errors under the start
     (a walk shows along gravity only: the tilt part is each rest's unknown direction), with
-    the accelerometer's own parameters (and ``dT`` when ``k`` is fitted) profiled out. Not the
-    ``slow_signals``: seen along gravity only, the walk's evidence is too thin for six more
-    columns (on a gimbal null they took it whole, and the walk's wander then flagged the map)."""
+    the accelerometer's own parameters (and ``dT`` when ``k`` is fitted) profiled out. Not each
+    axis's ``dT^2`` as for the gyro: seen along gravity only, the walk's evidence is too thin for
+    three more columns (six with a warm-up took it whole on a gimbal null)."""
     if sigma_rw is not None:
         return np.full(3, float(sigma_rw) ** 2)
     dT = _dT(rests)
