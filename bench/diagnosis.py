@@ -195,14 +195,16 @@ def injected_size(effect: str, mde: dict[str, float], factor: float) -> float | 
     return factor * m if np.isfinite(m) else None
 
 
-def regime_of(effect: str) -> str:
-    """The residual map's regime where ``effect`` shows (a warm-up shows at rest, along time since power-on)."""
-    return "motion" if identifier(effect) in MOTION else "static"
+def regimes_of(effect: str) -> tuple[str, ...]:
+    """The residual map's regimes ``effect`` acts in: the motions only (``MOTION``), or every reading
+    (a static term -- Earth's rate, a bias or scale law, a warm-up -- also acts on the samples inside
+    motions and on the attitude integrated through them, where a turntable's long turns may show it best)."""
+    return ("motion",) if identifier(effect) in MOTION else ("static", "motion")
 
 
 def top_cell_right(effect: str, cell: dict | None) -> bool:
-    """Whether the residual map's top-ranked cell is flagged and names the effect's sensor and regime."""
-    return bool(cell and cell["flagged"] and sensor_of(effect, cell["sensor"]) and cell["regime"] == regime_of(effect))
+    """Whether the residual map's top-ranked cell is flagged and names the effect's sensor and a regime it acts in."""
+    return bool(cell and cell["flagged"] and sensor_of(effect, cell["sensor"]) and cell["regime"] in regimes_of(effect))
 
 
 def absorbed(null: dict, effect: str) -> dict | None:

@@ -17,7 +17,7 @@ chi2/dof.
 5x its minimum detectable size (from the expected information of seed 0's null
 diagnosis, ``bench/diagnosis.py``'s ``minimum_detectable``), on ``--effect-seeds``
 sessions each, and the share of runs whose top-ranked cell is flagged and names the
-effect's sensor and regime (target >= 90 %).
+effect's sensor and a regime it acts in (``diagnosis.regimes_of``; target >= 90 %).
 """
 
 from __future__ import annotations
@@ -116,14 +116,15 @@ def effect_runs(protocols: list[str], seeds: int, folder: Path, jobs: int) -> No
     for proto in protocols:
         (folder / f"{proto}-mde").mkdir(parents=True, exist_ok=True)
         mde = dg.minimum_detectable(dg.diagnose(proto, 0, {}, folder / f"{proto}-mde"), dg.EFFECTS)
-        sized = {e: dg.injected_size(e, mde, 5.0) for e in dg.EFFECTS}
+        sized = {e: dg.injected_size(e, mde, 5.0) if np.isfinite(mde.get(e, np.inf)) else None for e in dg.EFFECTS}
         runs = [(proto, s, {e: dg.effect_params(e, a)}, str(folder / f"{proto}-{e}-{s}"))
                 for e, a in sized.items() if a is not None for s in range(seeds)]
         with ProcessPoolExecutor(jobs) as pool:
             results = list(pool.map(one_run, runs))
+        (folder / f"effects-{proto}.json").write_text(json.dumps(results, indent=1))
         for e, a in sized.items():
             if a is None:
-                print(f"{proto:<12}{e:<28}    -   not identifiable on this protocol")
+                print(f"{proto:<12}{e:<28}    -   not identifiable on this protocol (no finite MDE)")
                 continue
             rs = [r for r in results if e in r["effects"]]
             right = [dg.top_cell_right(e, r.get("top")) for r in rs]
