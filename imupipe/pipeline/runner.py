@@ -126,7 +126,7 @@ class _Source:
             and previous.get("session_digest") == digest
             and previous.get("device") == pipeline.device
             and previous.get("reader") == self.reader
-            and "streams" in previous
+            and previous.get("streams") is not None  # None: that run failed reading it
         ):
             # known from the last run of the same bytes through the same reader
             self._names = list(previous["streams"])

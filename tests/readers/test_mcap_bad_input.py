@@ -54,6 +54,15 @@ def test_truncated_file(tmp_path, mcap_kit, capsys):
     assert "truncated" in line and "mcap recover" in line
 
 
+def test_truncated_file_run_twice_into_one_folder(tmp_path, mcap_kit, capsys):
+    # the first run's manifest records the failure (no streams); the second must say the same
+    path = good_file(tmp_path, mcap_kit)
+    path.write_bytes(path.read_bytes()[:4000])
+    for _ in range(2):
+        assert main(["run", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+        assert "truncated" in capsys.readouterr().err
+
+
 def test_file_cut_inside_the_header(tmp_path, mcap_kit, capsys):
     path = good_file(tmp_path, mcap_kit)
     path.write_bytes(path.read_bytes()[:20])
