@@ -21,14 +21,10 @@ from ..effects.earth_rotation import EARTH_RATE
 from .evaluate import Evaluation
 from .library import structure_cells
 from .residual_map import benjamini_hochberg, windows
-from .select import (BLOCK_S, BOOT_DRAWS, HELDOUT_Z, Q_FDR, REVEAL, UNTESTED, VISIBLE_MIN, Finding,
-                     candidates, examine, heldout, rigid_walks, select)
+from .select import (BLOCK_S, BOOT_DRAWS, EARTH_IMPLAUSIBLE, HELDOUT_Z, Q_FDR, REVEAL, UNTESTED, VISIBLE_MIN,
+                     Finding, candidates, examine, heldout, rigid_walks, select)
 
 AXES = ("x", "y", "z")
-EARTH_IMPLAUSIBLE = 1.2  # a vertical rate above this many Earth rates is not Earth's
-# At rest Earth's rate shows only along gravity, as an isotropic g-sensitivity G = (Omega sin(lat) / g) I
-# does; its horizontal part turns with a heading no rest fixes. Without the latitude neither is named.
-EARTH_RIVAL = "gyro_g_sensitivity"
 SD_DRAWS = 400  # draws carrying a term's covariance to its parameters' standard deviations
 FAMILY_SHARE = {"catalogue": 0.5, "structure": 0.25, "map": 0.25}  # of q; the three sum to 1
 
@@ -87,9 +83,7 @@ def catalogue_findings(lin, tested: list, effects: dict, q: float = Q_FDR, held_
         rejects = f.tested.candidate.rejects
         unphysical = rejects(f.theta) if rejects else None  # e.g. a thermal lag the read-out makes
         if not unphysical and doc["heldout_rms_after"] < doc["heldout_rms_before"] and doc["heldout_z"] >= HELDOUT_Z:
-            rivals = f.rivals + [EARTH_RIVAL] * (doc["effect"] == "earth_rotation" and EARTH_RIVAL in effects
-                                                 and EARTH_RIVAL not in f.rivals)
-            findings.append(_ambiguous(doc, rivals) if rivals else doc)
+            findings.append(_ambiguous(doc, f.rivals) if f.rivals else doc)
             kept.append(f)
         else:  # significant on the data it was fitted to, not better on data it was not: not stood behind
             not_confirmed.append({"effect": doc["effect"], "sensor": doc["sensor"], "regime": doc["regime"],

@@ -75,6 +75,7 @@ RIGID = 1e3  # weight on the walks' increments when the visible fraction is meas
 LAG_MIN_S = SMOOTH_S  # s: a shorter fitted thermal lag is the read-out's quantisation
 WHITENED = "whitened"  # a term judged on every row it reaches, whitened (the gyro's inside motions)
 GYRO_STEP = 1e-7  # rad/s: the largest perturbation of a gyro sample when differencing a term's column
+EARTH_IMPLAUSIBLE = 1.2  # a vertical rate above this many Earth rates is not Earth's
 UNTESTED = {
     "gyro_saturation": "not a term to fit: clipped gyro samples sit on the rails of the full scale; the "
                        "motions holding them are left out of the fits and reported as saturation events",
@@ -544,6 +545,7 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR) -> tuple[np.
             k = f.tested.projected.shape[1]
             f.theta = theta[o:o + k]
             o += k
+    _earth_rivals(accepted, pool)
     return rp, accepted
 
 
@@ -587,6 +589,18 @@ def _earth_or_g(accepted: list[Finding], pool: list[Tested], stat, n_rows: int) 
     if T_g - T_e < extra * np.log(n_rows) and p_e <= g.p_value * 1e3:
         accepted[accepted.index(g)] = Finding(e, T_e, p_e, -T_e + e.projected.shape[1] * np.log(n_rows),
                                                 p_asymptotic=pa_e)
+
+
+def _earth_rivals(accepted: list[Finding], pool: list[Tested]) -> None:
+    """The naming trap the parsimony rule leaves (in place): a vertical rate Earth can make is, at
+    rest, an isotropic g-sensitivity as well; without the latitude neither is stood behind (a
+    rate beyond ``EARTH_IMPLAUSIBLE`` Earth rates is the g-sensitivity, ``diagnose`` names it)."""
+    if not any(t.candidate.effect == "gyro_g_sensitivity" for t in pool):
+        return
+    for f in accepted:
+        if f.tested.candidate.effect == "earth_rotation" and abs(f.theta[0]) <= EARTH_IMPLAUSIBLE * EARTH_RATE \
+                and "gyro_g_sensitivity" not in f.rivals:
+            f.rivals.append("gyro_g_sensitivity")
 
 
 def raw_units(lin: Linearised, r: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
