@@ -1,7 +1,8 @@
 """The residual map on simulated sessions: silent on nulls, pointing at the right cell when physics is missing.
 
     python bench/residual_nulls.py [--seeds 20] [--protocols standard sphere_rig gimbal]
-        [--effects [--effect-seeds 5]] [--out DIR] [--jobs 2]     (--seeds 0: the effects only)
+        [--effects [--effect-seeds 5] [--only EFFECT ...]] [--out DIR] [--jobs 2]
+                                                              (--seeds 0: the effects only)
 
 Nulls: ``--seeds`` sessions of each protocol with the simulator's consumer-MEMS model
 (white noise, quantisation, turn-on bias, thermal drift) plus a bias random walk on
@@ -108,7 +109,7 @@ def report_nulls(results: list[dict]) -> None:
     print("targets: all blocks in band >= 90 % of runs; no cell flagged >= 95 % of runs")
 
 
-def effect_runs(protocols: list[str], seeds: int, folder: Path, jobs: int) -> None:
+def effect_runs(protocols: list[str], seeds: int, folder: Path, jobs: int, only: list[str] | None = None) -> None:
     import diagnosis as dg  # the effects' sizes and directions (it imports this module: import here)
 
     print(f"\nEFFECTS at 5x the minimum detectable size: top-ranked cell flagged, on the right sensor and regime")
@@ -116,7 +117,8 @@ def effect_runs(protocols: list[str], seeds: int, folder: Path, jobs: int) -> No
     for proto in protocols:
         (folder / f"{proto}-mde").mkdir(parents=True, exist_ok=True)
         mde = dg.minimum_detectable(dg.diagnose(proto, 0, {}, folder / f"{proto}-mde"), dg.EFFECTS)
-        sized = {e: dg.injected_size(e, mde, 5.0) if np.isfinite(mde.get(e, np.inf)) else None for e in dg.EFFECTS}
+        sized = {e: dg.injected_size(e, mde, 5.0) if np.isfinite(mde.get(e, np.inf)) else None
+                 for e in dg.EFFECTS if not only or e in only}
         runs = [(proto, s, {e: dg.effect_params(e, a)}, str(folder / f"{proto}-{e}-{s}"))
                 for e, a in sized.items() if a is not None for s in range(seeds)]
         with ProcessPoolExecutor(jobs) as pool:
@@ -144,6 +146,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--effects", action="store_true")
     ap.add_argument("--effect-seeds", type=int, default=5)
+    ap.add_argument("--only", nargs="+", default=None, help="these effects of the catalogue only")
     args = ap.parse_args()
     folder = args.out or Path(tempfile.mkdtemp(prefix="residual-nulls-"))
     folder.mkdir(parents=True, exist_ok=True)
@@ -158,7 +161,7 @@ def main() -> None:
         print(f"\n{len(results)} runs in {time.perf_counter() - t:.0f} s (pipeline {np.median(secs):.1f} s median per run); "
               f"files in {folder}")
     if args.effects:
-        effect_runs(args.protocols, args.effect_seeds, folder, args.jobs)
+        effect_runs(args.protocols, args.effect_seeds, folder, args.jobs, args.only)
 
 
 if __name__ == "__main__":

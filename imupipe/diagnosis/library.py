@@ -8,8 +8,8 @@ library of smooth signals of what the model already reconstructs (per output axi
 products of the rates, angular acceleration and the rate of change of specific force
 in motion; static terms on every reading, as a catalogue term acts: products of the
 specific force, temperature terms and a warm-up exponential for the accelerometer, the
-specific force, temperature squared and the warm-up for the gyro, whose slow terms
-reach the motions through the attitude)? The library is
+specific force, temperature squared and the warm-up for the gyro, which reach the
+motions through the attitude)? The library is
 whitened like the residual and projected off the nominal Jacobian (calibration and
 every nuisance: what the model can already do), directions the nominal parameters leave
 less than ``VISIBLE_MIN`` visible (the bias walks held still, as for a catalogue term) are
@@ -87,20 +87,22 @@ class _Readings:
 
 @dataclass
 class _Carried:
-    """Motion rows a slow gyro term reaches through the integrated attitude: over a motion's few
-    seconds the term is its mean there, a constant gyro bias, so its column on those rows is the
-    bias's Jacobian column ``J`` (m, 3) times that mean ``X`` (m, k) (exact differencing would
-    cost a residual evaluation per column)."""
+    """Motion rows a gyro term reaches through the integrated attitude. A slow signal is its mean
+    over a motion's few seconds there, a constant gyro bias: its column on those rows is the
+    bias's Jacobian column ``J`` (m, 3) times that mean ``X`` (m, u). A signal that changes within
+    a motion (the specific force, turning with the attitude) has its exact column in ``E`` (m, k),
+    the model's residuals differenced (``Signals.gyro_motion_column``); zero for the others."""
 
     rows: np.ndarray  # (m,)
     J: np.ndarray
     X: np.ndarray
+    E: np.ndarray
 
     def __len__(self) -> int:
         return len(self.rows)
 
     def form(self, sl: slice, axis: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return self.rows[sl], self.J[sl][:, axis] * self.X[sl][:, use]
+        return self.rows[sl], self.J[sl][:, axis] * self.X[sl][:, use] + self.E[sl]
 
 
 @dataclass
@@ -143,8 +145,8 @@ def _matrix(signals: list) -> np.ndarray:
 def libraries(s: Signals) -> list[_Library]:
     """The static libraries act on every reading, as the catalogue's terms do (a slow term left out
     of the motions is one the bias walk copies at the rests for free): the accelerometer's on its
-    rest means and motion samples, the gyro's on its rest means and, for its slow signals, through
-    the motions' attitude (``_Carried``)."""
+    rest means and motion samples, the gyro's on its rest means and through the motions'
+    attitude (``_Carried``)."""
     model, lin = s.model, s.lin
     warm = lambda t_on: np.exp(-t_on / WARMUP_TAU_S)  # noqa: E731
     out = []
@@ -158,7 +160,7 @@ def libraries(s: Signals) -> list[_Library]:
     rest_g = _static(s.f_rest, model.dT, warm(s.t_on_rest), gyro=True)
     parts = [_Readings(s.rows_g, s.W_g, _matrix(rest_g))]
     if s.has_gyro_motion:
-        parts.append(_carried(lin, _static(s.f_gyro_motion, model.dT_gyro, warm(s.t_on_gyro_motion), gyro=True)))
+        parts.append(_carried(s, _static(s.f_gyro_motion, model.dT_gyro, warm(s.t_on_gyro_motion), gyro=True)))
     out.append(_Library("gyro", "static", _per_axis(rest_g), parts))
 
     if s.has_motion and len(s.rows_m):
@@ -171,11 +173,11 @@ def libraries(s: Signals) -> list[_Library]:
     return [lib for lib in out if sum(len(p) for p in lib.parts)]
 
 
-def _carried(lin: Linearised, signals: list) -> _Carried:
-    """The gyro library's slow signals (temperature, warm-up) carried into the motions' rows: each
-    motion's mean at its gyro samples times the gyro bias's columns; the orientation signals
-    (``f_*``) change within a motion and stay at the rests."""
-    model = lin.model
+def _carried(s: Signals, signals: list) -> _Carried:
+    """The gyro library carried into the motions' rows (``_Carried``): the slow signals
+    (temperature, warm-up) by each motion's mean at its gyro samples times the gyro bias's
+    columns, the specific force (``f_*``) exactly."""
+    lin, model = s.lin, s.model
     ms, rows = model.motions, lin.rows
     turn, acc = np.flatnonzero(rows.of("turn")), np.flatnonzero(rows.of("accel_motion"))
     at = np.r_[turn, acc]
@@ -185,7 +187,15 @@ def _carried(lin: Linearised, signals: list) -> _Carried:
     for u, (name, x, _) in enumerate(signals):
         if not name.startswith("f_"):
             X[:, u] = (np.bincount(ms.motion, x, ms.count) / count)[motion]
-    return _Carried(at, lin.J_g[at, lin.globals.slices["b_g"]], X)
+    columns = _per_axis(signals)
+    exact = [c for c, (_, name, _, _) in enumerate(columns) if name.startswith("f_")]
+    dy = np.zeros((len(ms.t), 3, len(exact)))
+    for j, c in enumerate(exact):
+        i, _, _, u = columns[c]
+        dy[:, i, j] = signals[u][1]
+    E = np.zeros((len(at), len(columns)))
+    E[:, exact] = s.gyro_motion_column(dy)[at]
+    return _Carried(at, lin.J_g[at, lin.globals.slices["b_g"]], X, E)
 
 
 def bootstrap_draws(tests: int, level: float) -> int:
