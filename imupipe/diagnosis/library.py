@@ -6,10 +6,11 @@ excess is below the noise of the count, sqrt(2 dof)). A structure cell asks a na
 question of the same rows: is the whitened residual correlated with a small, generic
 library of smooth signals of what the model already reconstructs (per output axis:
 products of the rates, angular acceleration and the rate of change of specific force
-in motion; static terms on every reading, as a catalogue term acts: products of the
+for the accelerometer in motion, the magnitude of each sensed rate for the gyro in
+motion; static terms on every reading, as a catalogue term acts: products of the
 specific force, temperature terms and a warm-up exponential for the accelerometer, the
-specific force, temperature squared and the warm-up for the gyro, which reach the
-motions through the attitude)? The library is
+specific force, temperature squared and the warm-up for the gyro; the gyro's terms reach
+the motions through the attitude)? The library is
 whitened like the residual and projected off the nominal Jacobian (calibration and
 every nuisance: what the model can already do), directions the nominal parameters leave
 less than ``VISIBLE_MIN`` visible (the bias walks held still, as for a catalogue term) are
@@ -160,8 +161,12 @@ def libraries(s: Signals) -> list[_Library]:
     rest_g = _static(s.f_rest, model.dT, warm(s.t_on_rest), gyro=True)
     parts = [_Readings(s.rows_g, s.W_g, _matrix(rest_g))]
     if s.has_gyro_motion:
-        parts.append(_carried(s, _static(s.f_gyro_motion, model.dT_gyro, warm(s.t_on_gyro_motion), gyro=True)))
+        motion_g = _static(s.f_gyro_motion, model.dT_gyro, warm(s.t_on_gyro_motion), gyro=True)
+        parts.append(_carried(s, motion_g, [name.startswith("f_") for name, _, _ in motion_g]))
     out.append(_Library("gyro", "static", _per_axis(rest_g), parts))
+    if s.has_gyro_motion:  # a response that differs with the rate's sign (scale asymmetry, rectification)
+        rate = [(f"|x_{AXES[j]}|", np.abs(s.x_gyro_motion[:, j]), "rad/s") for j in range(3)]
+        out.append(_Library("gyro", "motion", _per_axis(rate), [_carried(s, rate, [True] * 3)]))
 
     if s.has_motion and len(s.rows_m):
         w, a, fd, f = s.omega, s.alpha, s.f_dot, s.f_motion
@@ -173,10 +178,10 @@ def libraries(s: Signals) -> list[_Library]:
     return [lib for lib in out if sum(len(p) for p in lib.parts)]
 
 
-def _carried(s: Signals, signals: list) -> _Carried:
-    """The gyro library carried into the motions' rows (``_Carried``): the slow signals
-    (temperature, warm-up) by each motion's mean at its gyro samples times the gyro bias's
-    columns, the specific force (``f_*``) exactly."""
+def _carried(s: Signals, signals: list, exact: list[bool]) -> _Carried:
+    """A gyro library carried into the motions' rows (``_Carried``): the slow signals (temperature,
+    warm-up) by each motion's mean at its gyro samples times the gyro bias's columns, the
+    ``exact`` ones (changing within a motion: the specific force, the rate) by their own columns."""
     lin, model = s.lin, s.model
     ms, rows = model.motions, lin.rows
     turn, acc = np.flatnonzero(rows.of("turn")), np.flatnonzero(rows.of("accel_motion"))
@@ -184,17 +189,17 @@ def _carried(s: Signals, signals: list) -> _Carried:
     motion = np.r_[rows.index[turn], model.accel.motion[rows.index[acc]]] if len(acc) else rows.index[turn]
     count = np.maximum(np.bincount(ms.motion, minlength=ms.count), 1)
     X = np.zeros((len(at), len(signals)))
-    for u, (name, x, _) in enumerate(signals):
-        if not name.startswith("f_"):
+    for u, (_, x, _) in enumerate(signals):
+        if not exact[u]:
             X[:, u] = (np.bincount(ms.motion, x, ms.count) / count)[motion]
     columns = _per_axis(signals)
-    exact = [c for c, (_, name, _, _) in enumerate(columns) if name.startswith("f_")]
-    dy = np.zeros((len(ms.t), 3, len(exact)))
-    for j, c in enumerate(exact):
+    by_column = [c for c, (_, _, _, u) in enumerate(columns) if exact[u]]
+    dy = np.zeros((len(ms.t), 3, len(by_column)))
+    for j, c in enumerate(by_column):
         i, _, _, u = columns[c]
         dy[:, i, j] = signals[u][1]
     E = np.zeros((len(at), len(columns)))
-    E[:, exact] = s.gyro_motion_column(dy)[at]
+    E[:, by_column] = s.gyro_motion_column(dy)[at]
     return _Carried(at, lin.J_g[at, lin.globals.slices["b_g"]], X, E)
 
 

@@ -68,19 +68,20 @@ def test_the_gyro_signals_reach_the_motions_as_the_exact_column_does(fitted):
     gravity-dependent term turns with the attitude inside a motion."""
     lin = fitted[-1]
     s = Signals(lin)
-    (lib,) = [lb for lb in library.libraries(s) if lb.sensor == "gyro"]
-    C = _dense(lin, lib)
     motion = lin.rows.of("turn") | lin.rows.of("accel_motion")
-    signals = {"dT^2": s.model.dT_gyro ** 2, **{f"f_{a}": s.f_gyro_motion[:, j] for j, a in enumerate(library.AXES)}}
+    signals = {"dT^2": s.model.dT_gyro ** 2, **{f"f_{a}": s.f_gyro_motion[:, j] for j, a in enumerate(library.AXES)},
+               **{f"|x_{a}|": np.abs(s.x_gyro_motion[:, j]) for j, a in enumerate(library.AXES)}}
     checked = set()
-    for c, (i, name, _, _) in enumerate(lib.columns):
-        if name not in signals:
-            continue
-        dy = np.zeros((len(s.model.motions.t), 3, 1))
-        dy[:, i, 0] = signals[name]
-        exact = s.gyro_motion_column(dy)[:, 0]
-        assert np.linalg.norm(exact[motion]) > 0 and not exact[~motion].any()
-        tol = 0.05 if name == "dT^2" else 1e-12
-        assert np.linalg.norm(C[motion, c] - exact[motion]) <= tol * np.linalg.norm(exact[motion])
-        checked.add(name)
-    assert checked == set(signals)
+    for lib in (lb for lb in library.libraries(s) if lb.sensor == "gyro"):
+        C = _dense(lin, lib)
+        for c, (i, name, _, _) in enumerate(lib.columns):
+            if name not in signals:
+                continue
+            dy = np.zeros((len(s.model.motions.t), 3, 1))
+            dy[:, i, 0] = signals[name]
+            exact = s.gyro_motion_column(dy)[:, 0]
+            assert np.linalg.norm(exact[motion]) > 0 and not exact[~motion].any()
+            tol = 0.05 if name == "dT^2" else 1e-12
+            assert np.linalg.norm(C[motion, c] - exact[motion]) <= tol * np.linalg.norm(exact[motion])
+            checked.add((lib.regime, name))
+    assert {name for _, name in checked} == set(signals) and ("motion", "|x_x|") in checked
