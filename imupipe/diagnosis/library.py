@@ -303,7 +303,7 @@ def _score(lib: _Library, axes, sel, gram, visible, proj, h, scale, unit, g_b=No
     keep = lam > 1e-10 * lam.max()
     T = V[:, keep] / np.sqrt(lam[keep])
     vis, U = np.linalg.eigh(T.T @ Bv @ T)  # visible fraction of each direction of that span
-    ok = vis >= VISIBLE_MIN
+    ok = vis >= VISIBLE_MIN ** 2  # an information ratio; the visible fraction is its square root
     if not ok.any():
         return None
     info, E = np.linalg.eigh(U[:, ok].T @ (T.T @ B @ T) @ U[:, ok])  # the same directions, walks free
@@ -318,7 +318,7 @@ def _score(lib: _Library, axes, sel, gram, visible, proj, h, scale, unit, g_b=No
     w[idx] = theta / d
     # the signals the structure follows: marginal t of each projected column, largest first
     bjj = np.diag(B)
-    shown = (np.diag(Bv) >= VISIBLE_MIN) & (bjj > INFO_MIN)  # a column the model absorbs has no t of its own
+    shown = (np.diag(Bv) >= VISIBLE_MIN ** 2) & (bjj > INFO_MIN)  # a column the model absorbs has no t of its own
     t = np.where(shown, hn / np.sqrt(np.where(shown, bjj, 1.0)), 0.0)
     terms = []
     for j in [j for j in np.argsort(-np.abs(t)) if shown[j]][:3]:
