@@ -10,6 +10,14 @@ mean's covariance (the segmentation's, with the rest's effective sample size) pu
 through the calibration. The calibration (M, b0 and k where the rests span 1 degC) and the
 dip are refitted to these rows (``F`` is the rests' mean: M carries the scale), and each row counts one minus its leverage.
 
+Inside the motions the heading is carried by the gyro: the calibrated field at every sample of a
+motion is its field in the body at the motion's start (a nuisance per motion, fitted to the
+motion's samples) turned by the attitude the calibrated gyro integrates to that sample. The
+rows are whitened by the sample's noise (the rests' successive differences, through the
+calibration) plus the attitude error the gyro's white noise leaves at that point, and each
+counts one minus its leverage under the per-motion fit: a time offset between the triads, an
+interference while moving, a soft-iron error the rests leave unseen show there.
+
 Within-rest scatter is tested per rest and axis against that rest's own successive
 differences (von Neumann's ratio): independent samples pass, whatever their noise level or
 quantisation; an interference of ~1 Hz, slow wander or a vibrating support do not. The bias's
@@ -18,17 +26,22 @@ thermal drift the calibration models (``k``) is taken out first.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from scipy.optimize import least_squares
 
 from ..models import TriadCalibration
 from ..observations import Rests
+from .attitude import Attitude
+from .evaluate import Evaluation, white_noise
 from .residual_map import RowSet, _gravity_cell
 
-def rest_rows(rests: Rests, accel: TriadCalibration, mag: TriadCalibration) -> RowSet | None:
+def rest_rows(rests: Rests, accel: TriadCalibration, mag: TriadCalibration
+              ) -> tuple[RowSet, TriadCalibration] | None:
     """Magnitude and dip rows of every rest (axis -1: they belong to no single axis), with the
     magnetometer's calibration refitted to them (as the map judges the model, not the estimation
-    error of a calibration fitted to fewer or differently weighted data)."""
+    error of a calibration fitted to fewer or differently weighted data), and that refit."""
     if not rests.has("mag") or len(rests) < 3:
         return None
     T = np.where(np.isfinite(rests.temperature), rests.temperature, 25.0)
@@ -73,7 +86,72 @@ def rest_rows(rests: Rests, accel: TriadCalibration, mag: TriadCalibration) -> R
     k = len(rests)
     var = {"temperature degC": np.tile(rests.temperature, 2), "gravity along": np.tile(_gravity_cell(u), 2).astype(float),
            "time s": t}
-    return RowSet(r, w, np.full(2 * k, "mag"), np.full(2 * k, -1), np.full(2 * k, "static"), t, var)
+    M, b, k_T, _ = unpack(fit.x)
+    refit = dataclasses.replace(mag, M=M, b0=b, k=k_T if thermal else mag.k)
+    return RowSet(r, w, np.full(2 * k, "mag"), np.full(2 * k, -1), np.full(2 * k, "static"), t, var), refit
+
+
+MIN_MOTION_SAMPLES = 10  # a motion with fewer magnetometer samples tells little beyond its own nuisance
+
+
+def motion_rows(ev: Evaluation, rests: Rests, t_s: np.ndarray, y: np.ndarray, mag: TriadCalibration,
+                temperature: tuple[np.ndarray, np.ndarray] | None = None) -> RowSet | None:
+    """The magnetometer's samples ``y`` (n, 3) raw at ``t_s`` (n,) s inside the fitted model's
+    motions: each calibrated sample minus its motion's start-frame field turned by the gyro's
+    attitude (``Attitude.rotation_at``), whitened, with the per-motion field fitted (3 dof each).
+    ``mag``: the calibration refitted to the rests (``rest_rows``), as the map judges the model."""
+    model, lin = ev.lin.model, ev.lin
+    ms = model.motions
+    if not len(ms.t) or not len(t_s):
+        return None
+    P = model.unpack(lin.x_g)
+    omega, _ = model._rates(P, lin.x_l, derivatives=False)
+    att = Attitude.integrate(model.quad, omega)
+    # each sample's motion: inside [first, last] gyro sample of one (motions do not overlap)
+    order = np.argsort(ms.origin)
+    k = np.searchsorted(ms.origin[order], t_s, "right") - 1
+    motion = np.where(k >= 0, order[np.maximum(k, 0)], -1)
+    inside = (k >= 0) & (t_s <= ms.end[np.maximum(motion, 0)])
+    counts = np.bincount(motion[inside], minlength=ms.count)
+    inside &= counts[np.maximum(motion, 0)] >= MIN_MOTION_SAMPLES
+    if not inside.any():
+        return None
+    t, j = t_s[inside], motion[inside]
+    T = np.interp(t, *temperature) if temperature is not None and len(temperature[0]) else None
+    h = mag.apply(y[inside], T) @ ev.frame.T  # the calibration's frame -> the model's (gauge): Q v
+    R = att.rotation_at(model.quad.points(t, j))  # body at the sample -> body at the motion's start
+    # noise: the sample's, through the calibration; the attitude error the gyro's white noise
+    # leaves after tau s of a motion turns the field across itself: F^2 tau dt sigma_w^2
+    Mg = ev.frame @ mag.M
+    C = np.broadcast_to(Mg @ white_noise(rests, {"mag": (t_s, y)}, "mag") @ Mg.T, (len(t), 3, 3)).copy()
+    Sg = P["M_g"] @ model.noise.gyro_sample @ P["M_g"].T
+    dt = float(np.median(np.diff(ms.t)[np.diff(ms.motion) == 0])) if len(ms.t) > 1 else 0.0
+    tau = t - ms.origin[j]
+    n = h / np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-300)
+    across = np.eye(3) - n[:, :, None] * n[:, None, :]
+    C += (np.einsum("ni,ni->n", h, h) * tau * dt * np.trace(Sg) / 3)[:, None, None] * across
+    L_inv = np.linalg.inv(np.linalg.cholesky(C))
+    # per motion: b = (sum R C^-1 R')^-1 sum R C^-1 h, the field in the body at its start
+    Ci = np.swapaxes(L_inv, 1, 2) @ L_inv
+    RCi = R @ Ci
+    A = np.zeros((ms.count, 3, 3))
+    c = np.zeros((ms.count, 3))
+    np.add.at(A, j, RCi @ np.swapaxes(R, 1, 2))
+    np.add.at(c, j, np.einsum("nij,nj->ni", RCi, h))
+    used = np.unique(j)
+    A_inv = np.zeros_like(A)
+    A_inv[used] = np.linalg.inv(A[used])
+    b = np.einsum("mij,mj->mi", A_inv, c)
+    X = L_inv @ np.swapaxes(R, 1, 2)  # d (whitened row) / d b
+    r = np.einsum("nij,nj->ni", L_inv, h - np.einsum("nji,nj->ni", R, b[j]))
+    lev = np.einsum("nij,njk,nik->ni", X, A_inv[j], X)
+    omega_t = np.linalg.norm(np.column_stack([np.interp(t, ms.t, omega[:, a]) for a in range(3)]), axis=1)
+    var = {"|omega| rad/s": np.repeat(omega_t, 3), "time s": np.repeat(t, 3)}
+    if T is not None:
+        var["temperature degC"] = np.repeat(T, 3)
+    m = len(t)
+    return RowSet(r.ravel(), np.clip(1 - lev, 1e-3, 1).ravel(), np.full(3 * m, "mag"), np.tile(np.arange(3), m),
+                  np.full(3 * m, "motion"), np.repeat(t, 3), var)
 
 
 MIN_SCATTER_SAMPLES = 20  # below, von Neumann's ratio is too far from normal for its chi-square equivalent

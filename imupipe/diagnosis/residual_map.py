@@ -334,11 +334,12 @@ def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR, extra: tup
         if name in ev.white_chi2 and b["dof"] > 0:  # before the recording's own (coloured) noise model
             blocks[-1]["chi2_per_dof_white"] = ev.white_chi2[name] / b["dof"]
     for sc in (noise_rs, *extra):
-        for sensor in np.unique(sc.sensor):
-            m = sc.sensor == sensor
+        for sensor, regime in sorted(set(zip(sc.sensor, sc.regime))):
+            m = (sc.sensor == sensor) & (sc.regime == regime)
             c2, dof = float((sc.r[m] ** 2).sum()), float(sc.w[m].sum())
-            name = f"{sensor}_rest_samples" if sc.family == "noise" else f"{sensor}_rest"
-            blocks.append({"block": name, "sensor": str(sensor), "kind": "rest",
+            kind = "rest" if regime == "static" else "motion"
+            name = f"{sensor}_rest_samples" if sc.family == "noise" else f"{sensor}_{kind}"
+            blocks.append({"block": name, "sensor": str(sensor), "kind": kind,
                            "chi2": c2, "dof": dof, "chi2_per_dof": c2 / dof if dof else None, "rows": int(m.sum())})
     cell_docs = []
     for rank, i in enumerate(order):

@@ -88,11 +88,11 @@ def evaluation(inputs: Mapping[str, pa.Table], params: MapParams,
                     _events(inputs.get("events")), knot_s=params.knot_s)
 
 
-def magnetometer_rows(inputs: Mapping[str, pa.Table]) -> tuple:
-    """The magnetometer's rest and within-rest rows for the map (``diagnosis.magnetic``), when
-    the session has one and its calibration is wired in (``mag_calibration``)."""
+def magnetometer_rows(inputs: Mapping[str, pa.Table], ev: Evaluation) -> tuple:
+    """The magnetometer's rest, within-rest and motion rows for the map (``diagnosis.magnetic``),
+    when the session has one and its calibration is wired in (``mag_calibration``)."""
     from ..diagnosis.evaluate import effective_counts
-    from ..diagnosis.magnetic import rest_rows, scatter_rows
+    from ..diagnosis.magnetic import motion_rows, rest_rows, scatter_rows
 
     if inputs.get("mag") is None or inputs.get("mag_calibration") is None:
         return ()
@@ -106,16 +106,18 @@ def magnetometer_rows(inputs: Mapping[str, pa.Table]) -> tuple:
     t_ns, y = xyz(inputs["mag"])
     t = (t_ns - rests.t0_ns) * 1e-9
     rests = effective_counts(rests, {"mag": (t, y)})
-    scatter = scatter_rows(rests, t, y, mag_cal["mag"].k, temperature_stream(inputs.get("temperature"), rests.t0_ns))
-    return tuple(rs for rs in (rest_rows(rests, cal["accel"], mag_cal["mag"]), scatter)
-                 if rs is not None)
+    temperature = temperature_stream(inputs.get("temperature"), rests.t0_ns)
+    at_rests, refit = rest_rows(rests, cal["accel"], mag_cal["mag"]) or (None, None)
+    rows = (at_rests, scatter_rows(rests, t, y, mag_cal["mag"].k, temperature),
+            motion_rows(ev, rests, t, y, refit, temperature) if refit is not None else None)
+    return tuple(rs for rs in rows if rs is not None)
 
 
 def map_residuals(inputs: Mapping[str, pa.Table], params: MapParams, solver: BoundSolver | None) -> dict:
     from ..diagnosis.residual_map import residual_map
 
     ev = evaluation(inputs, params)
-    doc = residual_map(ev, q=params.fdr_q, extra=magnetometer_rows(inputs))
+    doc = residual_map(ev, q=params.fdr_q, extra=magnetometer_rows(inputs, ev))
     meta = {MAP_KEY.decode(): json.dumps(doc)}
     return {"samples": ev.samples, "map": schemas.stamp(_cell_table(doc["cells"]), "residual_map", meta)}
 
@@ -161,7 +163,7 @@ def diagnose_session(inputs: Mapping[str, pa.Table], params: MapParams, solver: 
     from ..plugins import make_registry
 
     ev = evaluation(inputs, params)
-    doc = residual_map(ev, q=params.fdr_q, extra=magnetometer_rows(inputs))
+    doc = residual_map(ev, q=params.fdr_q, extra=magnetometer_rows(inputs, ev))
     registry = make_registry()
     effects = {name: registry.get("effects", name) for name in registry.names("effects")}
     diag = diagnose(ev, doc, effects, q=params.fdr_q)

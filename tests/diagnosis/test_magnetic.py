@@ -1,5 +1,6 @@
 """The magnetometer's rows of the residual map: heading-free rest residuals with the calibration
-refitted, and within-rest scatter against the successive-difference noise."""
+refitted, within-rest scatter against the successive-difference noise, and the motions' samples
+against the field carried by the gyro's attitude."""
 
 from __future__ import annotations
 
@@ -7,7 +8,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from imupipe.diagnosis.magnetic import rest_rows, scatter_rows
+from imupipe.diagnosis.evaluate import Evaluation
+from imupipe.diagnosis.magnetic import motion_rows, rest_rows, scatter_rows
 from imupipe.diagnosis.residual_map import cells
 from imupipe.models import TriadCalibration
 from imupipe.observations import Rests
@@ -44,12 +46,12 @@ ACCEL = TriadCalibration("accel", np.eye(3))
 def test_rest_rows_are_white_on_a_null_and_see_a_field_that_changes_between_places():
     rng = np.random.default_rng(1)
     rests = _rests(rng)
-    rs = rest_rows(rests, ACCEL, _mag_cal(rests))
+    rs, _ = rest_rows(rests, ACCEL, _mag_cal(rests))
     stat, dof = float(rs.r @ rs.r), float(rs.w.sum())
     assert len(rs.r) == 2 * len(rests) and dof < len(rs.r) - 10  # the refit's parameters are counted
     assert chi2.sf(stat, dof) > 1e-3 and chi2.cdf(stat, dof) > 1e-3
     moved = _rests(np.random.default_rng(1), field_of_rest=lambda i: np.where(i < 20, 1.0, 1.004))
-    rs = rest_rows(moved, ACCEL, _mag_cal(moved))
+    rs, _ = rest_rows(moved, ACCEL, _mag_cal(moved))
     flagged = [c for c in cells(rs) if c.p_value < 1e-6]
     assert any(c.variable == "time s" for c in flagged)
 
@@ -85,3 +87,17 @@ def test_within_rest_scatter_sees_a_switched_current_but_not_white_noise_or_quan
     loud = scatter_rows(rests, t, y)
     x = loud.axis == 0
     assert float(loud.r[x] @ loud.r[x]) / loud.w[x].sum() > 1.5
+
+
+def test_motion_rows_are_white_on_a_null_and_see_a_field_sampled_late(fitted):
+    """Inside the motions the calibrated field follows the gyro's attitude: white at the true
+    calibration, and far from white when the magnetometer's clock is 10 ms late."""
+    _, out, truth, _, rests, _, lin = fitted
+    ev = Evaluation(lin, np.eye(3), None)  # the accelerometer's S is lower-triangular: no gauge rotation
+    args = (out.raw["mag"], truth.calibration["mag"], (out.t, out.temperature))
+    rs = motion_rows(ev, rests, out.t, *args)
+    assert set(rs.regime) == {"motion"} and len(rs.r) > 3000
+    dof = rs.w.sum()
+    assert abs((rs.r ** 2).sum() / dof - 1) < 3 * np.sqrt(2 / dof)
+    late = motion_rows(ev, rests, out.t - 0.01, *args)
+    assert chi2.sf((late.r ** 2).sum(), late.w.sum()) < 1e-9
