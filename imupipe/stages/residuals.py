@@ -4,7 +4,7 @@ Inputs: the session's raw ``accel`` and ``gyro`` (and ``temperature``), the
 segmentation's ``rests`` and ``turns`` (and the ``events`` of ``screen_events``:
 gaps, shocks, splices), and the ``calibration`` to judge (the joint refinement's, whose
 details carry the noise model it fitted: the bias walks); optionally the raw ``mag`` and its
-``mag_calibration``, judged at the rests (``diagnosis.magnetic``). Outputs the per-sample
+``mag_calibration``, judged at the rests and in the motions (``diagnosis.magnetic``). Outputs the per-sample
 residual table (``sample_residuals``) and the residual map (``residual_map``: its
 cells as rows, the whole ``residual_map.json`` document in the schema metadata).
 See ``imupipe.diagnosis`` and docs/residual-map.md.
@@ -142,7 +142,7 @@ def _edge(x) -> float:
 
 STAGE = Stage(
     name="map_residuals",
-    version="12",
+    version="13",
     func=map_residuals,
     inputs={"accel": "accel", "gyro": "gyro", "temperature": "temperature", "rests": "rests",
             "turns": "turns", "calibration": "calibration", "events": "events", "mag": "mag",
@@ -180,7 +180,7 @@ def diagnose_session(inputs: Mapping[str, pa.Table], params: MapParams, solver: 
 
 DIAGNOSE = Stage(
     name="diagnose",
-    version="14",
+    version="15",
     func=diagnose_session,
     inputs=STAGE.inputs,
     outputs={"samples": "sample_residuals", "map": "residual_map", "diagnosis": "diagnosis"},
