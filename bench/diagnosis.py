@@ -23,6 +23,9 @@ diagnosed blind with
   (``TYPICAL``, from the memo's catalogue): a finding naming it is a false discovery, listing it
   ``not_identifiable`` again is the right answer;
 - ``PAIRS`` of visible effects at once, each at the largest factor: both named?
+- effects outside the catalogue (``outside_catalogue.OUTSIDE``, simulated through the effect
+  plugin hook, unknown to the diagnosis): a gyro bias step and a per-axis accelerometer size
+  effect, at one fixed size each. A right answer names no catalogue effect (``unknown`` or nothing).
 
 plus ``--extra-nulls`` more null sessions per seed (the memo asks >= 30 % nulls). Printed: the
 tables per protocol and a summary with issue 9's targets and PASS/MISS: family-wise false
@@ -39,8 +42,7 @@ The thermal lag is injected at no less than ``LAG_S`` (four times the temperatur
 scale: shorter lags are rejected as read-out artefacts), and at that size where the null says it
 cannot be seen: in a first-order warm-up the read-out's rate is affine in its temperature, so the
 null's column is absorbed, while a real lag shows as its own start-up after power-on (so it is
-not an "absorbed" case); such a lag is injected once (factor ``-``: not a multiple of an MDE). Not built: the memo's out-of-catalogue mode (the simulator has no
-effect outside the catalogue, e.g. a per-axis size effect).
+not an "absorbed" case); such a lag is injected once (factor ``-``: not a multiple of an MDE).
 """
 
 from __future__ import annotations
@@ -60,6 +62,8 @@ from imupipe.effects.earth_rotation import EARTH_RATE
 from imupipe.pipeline.api import run_sessions
 from imupipe.sim.api import simulate
 
+import outside_catalogue
+from outside_catalogue import OUTSIDE
 from residual_nulls import PIPELINE, realistic_imu, tidy
 
 G = 9.80665
@@ -81,7 +85,10 @@ KEY = {"lever_arm": "r_m", "accel_gyro_time_offset": "dt_s", "accel_nonlinearity
 
 
 def effect_params(effect: str, a: float) -> dict:
-    """The effect at size ``a`` along a fixed direction (effects.md parameters)."""
+    """The effect at size ``a`` along a fixed direction (effects.md parameters); one outside the
+    catalogue at its one size (``OUTSIDE``)."""
+    if effect in OUTSIDE:
+        return OUTSIDE[effect]
     e = identifier(effect)
     if e == "earth_rotation":  # ``a`` the vertical rate Omega sin(lat)
         return {"latitude_deg": float(np.degrees(np.arcsin(min(a / EARTH_RATE, 1.0))))}
@@ -149,7 +156,8 @@ def mode(effect: str) -> str:
 def diagnose(protocol: str, seed: int, effects: dict, folder: Path, tag: str = "") -> dict:
     name = "-".join(e.replace(":", "_") for e in effects) or "null"
     path = folder / f"{protocol}-{seed}-{name}{tag}.mcap"
-    simulate(protocol, effects, seed, path, quiet=True, imu=realistic_imu(seed), env={"gravity_m_s2": G})
+    simulate(protocol, effects, seed, path, quiet=True, imu=realistic_imu(seed), env={"gravity_m_s2": G},
+             plugins=[outside_catalogue])
     out = folder / "out"
     t = time.perf_counter()
     run_sessions([path], PIPELINE[protocol], out, quiet=True, diagnose=True)
@@ -245,7 +253,8 @@ def judged(effect: str, size: float, findings: list[dict], frame: np.ndarray) ->
 
 def run(protocol: str, seed: int, kind: str, sizes: dict[str, float], factor: float | None, folder: Path,
         sim_seed: int | None = None) -> dict:
-    """One blind diagnosis of ``sizes`` (effect: size) injected; ``kind``: effect, trap, absorbed, pair, null."""
+    """One blind diagnosis of ``sizes`` (effect: size) injected; ``kind``: effect, trap, absorbed, pair,
+    outside, null."""
     rec = {"kind": kind, "protocol": protocol, "seed": seed, "sim_seed": seed if sim_seed is None else sim_seed,
            "factor": factor, "sizes": sizes}
     tag = "" if factor is None else f"-{factor:g}x"
@@ -277,6 +286,7 @@ def plan(null: dict, effects: list[str], factors: list[float]) -> list[tuple[str
     top = max(factors)
     runs += [("pair", {e: injected_size(e, mde, top) for e in pair}, top) for pair in PAIRS
              if all(e in effects and injected_size(e, mde, top) is not None for e in pair)]
+    runs += [("outside", {e: 1.0}, None) for e in OUTSIDE if e in effects]
     return runs
 
 
@@ -393,6 +403,10 @@ def report(results: list[dict]) -> dict[str, tuple[str, str, str]]:
         (e, a), = x["sizes"].items()
         print(f"  {x['protocol']:<10}{e:<30}{a:>10.3g}  seed {x['seed']}: discovered {x['effects'][e]['named']}, "
               f"not_identifiable {e in x['not_identifiable']}, findings {x['findings']}")
+    print("\nOUTSIDE the catalogue (simulated by a plugin the diagnosis does not know): right = no catalogue name")
+    for x in (x for x in runs if x["kind"] == "outside"):
+        print(f"  {x['protocol']:<10}{next(iter(x['sizes'])):<30} seed {x['seed']}: findings {x['findings']}, "
+              f"right {not wrong(x)}")
     print("\nPAIRS at the largest factor: both named")
     for x in (x for x in runs if x["kind"] == "pair"):
         print(f"  {x['protocol']:<10}{' + '.join(x['sizes']):<50} seed {x['seed']}: "
@@ -438,6 +452,8 @@ def summary(runs: list[dict]) -> dict[str, tuple[str, str, str]]:
         "absorbed: listed not_identifiable": rate([e in x["not_identifiable"] for x, e in one(of("absorbed"))],
                                                   lo=0.80, target=">= 80 %"),
         "pairs: both named": rate([all(j["named"] for j in x["effects"].values()) for x in of("pair")]),
+        "outside: found (any finding)": rate([bool(x["findings"]) for x in of("outside")]),
+        "outside: no catalogue name": rate([not wrong(x) for x in of("outside")], lo=0.95, target=">= 95 %"),
     }
 
 
@@ -451,7 +467,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--protocols", nargs="+", default=["gimbal", "standard"])
-    ap.add_argument("--effects", nargs="+", default=EFFECTS + [ISOTROPIC], help="'none': nulls only")
+    ap.add_argument("--effects", nargs="+", default=EFFECTS + [ISOTROPIC, *OUTSIDE], help="'none': nulls only")
     ap.add_argument("--factors", nargs="+", type=float, default=[1.0, 2.0, 5.0])
     ap.add_argument("--extra-nulls", type=int, default=0, help="more null sessions per seed")
     ap.add_argument("--jobs", type=int, default=1)

@@ -8,9 +8,7 @@ SI in the sensor's axes) and its ``Truth``. ``simulate`` writes the recording as
 
 from __future__ import annotations
 
-import importlib
-import pkgutil
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -36,25 +34,24 @@ CSV_COLUMNS = ["t_ns", "accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyr
                "mag_x", "mag_y", "mag_z", "temperature"]
 
 
-def known_effects() -> dict[str, Any]:
-    """Identifier -> effect object, from every module of ``imupipe.effects``."""
-    import imupipe.effects as pkg
+def known_effects(plugins: Iterable[object] = ()) -> dict[str, Any]:
+    """Identifier -> effect object: the catalogue (``imupipe.effects``) and every effect a plugin
+    registers, installed (entry points) or given in ``plugins`` (one definition of each physics,
+    for the simulator and the diagnosis alike)."""
+    from ..plugins import make_registry
 
-    out: dict[str, Any] = {}
-    for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda i: i.name):
-        if not info.name.startswith("_"):
-            for effect in getattr(importlib.import_module(f"{pkg.__name__}.{info.name}"), "COMPONENTS", ()):
-                out[effect.identifier] = effect
-    return out
+    registry = make_registry(plugins)
+    return {name: registry.get("effects", name) for name in registry.names("effects")}
 
 
-def resolve_effects(effects: Mapping[str, Mapping[str, Any]] | None) -> dict[str, tuple[Any, Any]]:
-    """Validate ``{identifier: parameters}``; an unknown identifier lists the known ones.
+def resolve_effects(effects: Mapping[str, Mapping[str, Any]] | None, plugins: Iterable[object] = ()
+                    ) -> dict[str, tuple[Any, Any]]:
+    """Validate ``{identifier: parameters}`` (``known_effects(plugins)``); an unknown identifier lists the known ones.
 
     ``identifier:tag`` (e.g. ``warmup_transient:accel``) switches on a second instance of the
     same effect, e.g. on another triad.
     """
-    catalogue = known_effects()
+    catalogue = known_effects(plugins) if effects else {}
     resolved = {}
     for name, params in (effects or {}).items():
         ident = name.split(":", 1)[0]
@@ -67,26 +64,27 @@ def resolve_effects(effects: Mapping[str, Mapping[str, Any]] | None) -> dict[str
 
 def simulate_recording(protocol: str = "standard", effects: Mapping[str, Mapping[str, Any]] | None = None,
                        seed: int = 0, *, imu: ImuModel | Mapping[str, Any] | None = None,
-                       env: Environment | Mapping[str, Any] | None = None,
+                       env: Environment | Mapping[str, Any] | None = None, plugins: Iterable[object] = (),
                        **protocol_overrides: Any) -> tuple[Recording, Truth]:
     """Simulate ``protocol`` (see ``imupipe.sim.protocols.PROTOCOLS``) with ``effects`` switched on.
 
     ``imu``: the sensor model (default: realistic consumer-MEMS errors drawn from ``seed``);
-    ``env``: the environment (default Moscow); ``protocol_overrides``: the protocol's parameters.
+    ``env``: the environment (default Moscow); ``plugins``: plugin objects whose effects may be
+    switched on besides the installed ones; ``protocol_overrides``: the protocol's parameters.
     The same arguments give the same recording.
     """
-    out, truth = simulate_arrays(protocol, effects, seed, imu=imu, env=env, **protocol_overrides)
+    out, truth = simulate_arrays(protocol, effects, seed, imu=imu, env=env, plugins=plugins, **protocol_overrides)
     return _recording(out, f"simulated:{protocol}:seed={seed}"), truth
 
 
 def simulate_arrays(protocol: str = "standard", effects: Mapping[str, Mapping[str, Any]] | None = None,
                     seed: int = 0, *, imu: ImuModel | Mapping[str, Any] | None = None,
-                    env: Environment | Mapping[str, Any] | None = None,
+                    env: Environment | Mapping[str, Any] | None = None, plugins: Iterable[object] = (),
                     **protocol_overrides: Any) -> tuple[engine.SimOutput, Truth]:
     """As ``simulate_recording``, but the plain arrays, including the hidden ones: true inputs
     ``inputs[sensor]`` (n, 3) in the instrument frame and the die temperature ``T_die`` (n,)."""
     params = protocols.protocol_params(protocol, **protocol_overrides)
-    resolved = resolve_effects(effects)
+    resolved = resolve_effects(effects, plugins)
     plan = protocols.build(protocol, params, np.random.default_rng([seed, 1]))
     model = _model(imu, np.random.default_rng([seed, 2]))
     if plan.thermal:
@@ -100,11 +98,12 @@ def simulate_arrays(protocol: str = "standard", effects: Mapping[str, Mapping[st
 
 def simulate(protocol: str, effects: dict[str, dict], seed: int, out: Path, quiet: bool,
              params: Mapping[str, Any] | None = None, imu: Mapping[str, Any] | None = None,
-             env: Mapping[str, Any] | None = None) -> list[Path]:
+             env: Mapping[str, Any] | None = None, plugins: Iterable[object] = ()) -> list[Path]:
     """Write the simulated session to ``out`` (``.mcap`` or ``.csv``) and ``<out>.truth.json``.
 
     ``params`` overrides the protocol's parameters (e.g. ``{"n_positions": 60}``), ``imu``
-    the sensor model's fields, ``env`` the environment's (e.g. ``{"gravity_m_s2": 9.80665}``).
+    the sensor model's fields, ``env`` the environment's (e.g. ``{"gravity_m_s2": 9.80665}``),
+    ``plugins`` plugin objects with effects beyond the installed ones.
     """
     out = Path(out)
     suffix = out.suffix.lower()
@@ -112,7 +111,8 @@ def simulate(protocol: str, effects: dict[str, dict], seed: int, out: Path, quie
         raise ConfigError(f"{out}: the simulator writes .mcap or .csv; choose one of those suffixes")
     with progress(quiet) as p:
         task = p.add_task(f"simulating {protocol}", total=2)
-        recording, truth = simulate_recording(protocol, effects, seed, imu=imu, env=env, **dict(params or {}))
+        recording, truth = simulate_recording(protocol, effects, seed, imu=imu, env=env, plugins=plugins,
+                                              **dict(params or {}))
         p.advance(task)
         if suffix == ".mcap":
             write_mcap(out, recording)

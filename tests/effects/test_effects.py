@@ -12,7 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from imupipe.components import Effect
+from imupipe.components import Effect, Params
+from imupipe.effects._base import EffectBase
+from imupipe.hookspecs import hookimpl
 from imupipe.errors import ConfigError
 from imupipe.sim.api import known_effects, recording_arrays, simulate_recording
 from imupipe.sim.environment import EARTH_RATE_RAD_S, Environment
@@ -37,6 +39,39 @@ def rest_mask(x, truth, margin_s=0.05):
 def test_catalogue_is_complete():
     names = set(re.findall(r"^\| `(\w+)` \|", CATALOGUE.read_text(), re.MULTILINE)) - {"unknown"}
     assert names == set(known_effects())
+
+
+class _OffsetParams(Params):
+    offset: list[float]
+
+
+class _GyroOffset(EffectBase):
+    identifier = "test_gyro_offset"
+    sensors = ("gyro",)
+    stage = "bias"
+    params = _OffsetParams
+    physics = "a constant added to the gyro (a third-party effect)."
+
+    def _apply(self, streams, ctx, p, rng) -> None:
+        streams["gyro"] = streams["gyro"] + np.asarray(p.offset)
+
+
+class _Plugin:
+    @hookimpl
+    def imupipe_register_effects(self, register):
+        register(_GyroOffset())
+
+
+def test_a_plugin_effect_is_simulated_through_the_same_hook():
+    assert "test_gyro_offset" in known_effects([_Plugin()]) and "test_gyro_offset" not in known_effects()
+    offset = [1e-3, -2e-3, 3e-3]
+    x0, _ = run("gimbal", n_rotations=3, grid_deg=90.0)
+    x1, truth = run("gimbal", {"test_gyro_offset": {"offset": offset}}, n_rotations=3, grid_deg=90.0,
+                    plugins=[_Plugin()])
+    np.testing.assert_allclose(x1["gyro"] - x0["gyro"], np.broadcast_to(offset, x0["gyro"].shape), atol=1e-15)
+    assert list(truth.effects) == ["test_gyro_offset"]
+    with pytest.raises(ConfigError, match="unknown effect 'test_gyro_offset'"):
+        run("gimbal", {"test_gyro_offset": {"offset": offset}}, n_rotations=3, grid_deg=90.0)
 
 
 @pytest.mark.parametrize("name", sorted(known_effects()))
