@@ -1,7 +1,7 @@
 """The residual map on simulated sessions: silent on nulls, pointing at the right cell when physics is missing.
 
     python bench/residual_nulls.py [--seeds 20] [--protocols standard sphere_rig gimbal]
-        [--effects [--effect-seeds 5] [--only EFFECT ...]] [--out DIR] [--jobs 2]
+        [--effects [--effect-seeds 5] [--only EFFECT ...]] [--instability] [--out DIR] [--jobs 2]
                                                               (--seeds 0: the effects only)
 
 Nulls: ``--seeds`` sessions of each protocol with the simulator's consumer-MEMS model
@@ -13,6 +13,10 @@ read-out (0.125 degC, a BMI088's), through the protocol's pipeline (``standard``
 whose every block has chi2/dof within 1 +- 3 sqrt(2/dof) (target >= 90 %) and the
 share with no cell flagged at BH q = 0.05 (target >= 95 %), with each block's median
 chi2/dof.
+
+``--instability``: the nulls' sensor also has a bias instability (``INSTABILITY``, first-order
+Gauss-Markov: what real parts have beside a walk, and what another simulator may draw), which
+the model takes as a walk: a robustness check of the nulls, not a null of the model.
 
 ``--effects`` (after the nulls): each catalogue effect the protocol can see, at
 5x its minimum detectable size (from the expected information of seed 0's null
@@ -41,22 +45,30 @@ REPO = Path(__file__).resolve().parents[1]
 G = 9.80665
 PIPELINE = {"standard": None, "sphere_rig": None, "gimbal": REPO / "pipelines" / "gimbal-optimization.toml"}
 BAND_SD = 3.0
+# a bias instability of the size consumer MEMS data sheets give (gyro ~4 deg/h, accelerometer ~20 ug),
+# as a first-order Gauss-Markov process over 100 s
+INSTABILITY = {"accel": {"bias_gm_sd": 2e-4, "bias_gm_tau_s": 100.0},
+               "gyro": {"bias_gm_sd": 2e-5, "bias_gm_tau_s": 100.0}}
 
 
-def realistic_imu(seed: int):
+def realistic_imu(seed: int, instability: bool = False):
+    """The consumer-MEMS sensor of the benches; ``instability``: plus a bias instability the
+    model does not have (``INSTABILITY``: Gauss-Markov, not a walk)."""
     imu = default_imu(np.random.default_rng([seed, 2]))
+    extra = INSTABILITY if instability else {"accel": {}, "gyro": {}}
     return imu.model_copy(update={
-        "accel": imu.accel.model_copy(update={"bias_rw": 1e-5}),
-        "gyro": imu.gyro.model_copy(update={"bias_rw": 1e-6}),
+        "accel": imu.accel.model_copy(update={"bias_rw": 1e-5, **extra["accel"]}),
+        "gyro": imu.gyro.model_copy(update={"bias_rw": 1e-6, **extra["gyro"]}),
         "thermal": imu.thermal.model_copy(update={"readout_quantum_C": 0.125}),
     })
 
 
-def one_run(args: tuple[str, int, dict, str]) -> dict:
-    protocol, seed, effects, folder = args
+def one_run(args: tuple[str, int, dict, str, bool]) -> dict:
+    protocol, seed, effects, folder, instability = args
     folder = Path(folder)
     path = folder / f"{protocol}-{seed}-{'-'.join(effects) or 'null'}.mcap"
-    simulate(protocol, effects, seed, path, quiet=True, imu=realistic_imu(seed), env={"gravity_m_s2": G})
+    simulate(protocol, effects, seed, path, quiet=True, imu=realistic_imu(seed, instability),
+             env={"gravity_m_s2": G})
     out = folder / "out"
     t = time.perf_counter()
     try:
@@ -119,7 +131,7 @@ def effect_runs(protocols: list[str], seeds: int, folder: Path, jobs: int, only:
         mde = dg.minimum_detectable(dg.diagnose(proto, 0, {}, folder / f"{proto}-mde"), dg.EFFECTS)
         sized = {e: dg.injected_size(e, mde, 5.0) if np.isfinite(mde.get(e, np.inf)) else None
                  for e in dg.EFFECTS if not only or e in only}
-        runs = [(proto, s, {e: dg.effect_params(e, a)}, str(folder / f"{proto}-{e}-{s}"))
+        runs = [(proto, s, {e: dg.effect_params(e, a)}, str(folder / f"{proto}-{e}-{s}"), False)
                 for e, a in sized.items() if a is not None for s in range(seeds)]
         with ProcessPoolExecutor(jobs) as pool:
             results = list(pool.map(one_run, runs))
@@ -147,11 +159,14 @@ def main() -> None:
     ap.add_argument("--effects", action="store_true")
     ap.add_argument("--effect-seeds", type=int, default=5)
     ap.add_argument("--only", nargs="+", default=None, help="these effects of the catalogue only")
+    ap.add_argument("--instability", action="store_true",
+                    help="nulls with a bias instability the model does not have (INSTABILITY)")
     args = ap.parse_args()
     folder = args.out or Path(tempfile.mkdtemp(prefix="residual-nulls-"))
     folder.mkdir(parents=True, exist_ok=True)
     if args.seeds:
-        jobs = [(p, s, {}, str(folder / f"{p}-{s}")) for p in args.protocols for s in range(args.seeds)]
+        jobs = [(p, s, {}, str(folder / f"{p}-{s}"), args.instability) for p in args.protocols
+                for s in range(args.seeds)]
         t = time.perf_counter()
         with ProcessPoolExecutor(args.jobs) as pool:
             results = list(pool.map(one_run, jobs))

@@ -103,6 +103,8 @@ def run(trajectory: Trajectory, windows: tuple[tuple[float, float], ...], model:
         bias = b0 + turn_on[s][cycle] + np.outer(streams["T_die"] - 25.0, k)
         if tm.bias_rw:
             bias = bias + random_walk(t, cycle, np.full(3, tm.bias_rw), rng)
+        if tm.bias_gm_sd:
+            bias = bias + gauss_markov(t, tm.bias_gm_sd, tm.bias_gm_tau_s, rng)
         streams[s] = streams[s] + bias
     stage("bias")
     for s in SENSORS:
@@ -121,6 +123,18 @@ def run(trajectory: Trajectory, windows: tuple[tuple[float, float], ...], model:
 
 def quantise(y: np.ndarray, quantum: float) -> np.ndarray:
     return np.round(y / quantum) * quantum if quantum else y
+
+
+def gauss_markov(t: np.ndarray, sd: float, tau_s: float, rng: np.random.Generator) -> np.ndarray:
+    """A stationary first-order Gauss-Markov process (n, 3): steady-state ``sd``, correlation time
+    ``tau_s`` (exact steps at the median sample interval; bias instability, not a walk)."""
+    from scipy.signal import lfilter
+
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    phi = np.exp(-dt / tau_s)
+    n = rng.normal(size=(len(t), 3)) * sd * np.sqrt(1 - phi ** 2)
+    n[0] = rng.normal(size=3) * sd  # the first sample from the steady state
+    return lfilter([1.0], [1.0, -phi], n, axis=0)
 
 
 def random_walk(t: np.ndarray, cycle: np.ndarray, sigma: np.ndarray, rng: np.random.Generator) -> np.ndarray:

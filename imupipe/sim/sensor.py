@@ -49,6 +49,9 @@ class TriadModel(Params):
     k: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0])
     noise_sd: float = Field(0.0, ge=0)
     bias_rw: float = Field(0.0, ge=0, description="bias random walk, units per sqrt(s)")
+    bias_gm_sd: float = Field(0.0, ge=0, description="bias instability: a first-order Gauss-Markov "
+                                                       "bias's steady-state sd, units")
+    bias_gm_tau_s: float = Field(100.0, gt=0, description="its correlation time, s")
     turn_on_sd: float = Field(0.0, ge=0, description="turn-on bias repeatability per power cycle")
     quantum: float = Field(0.0, ge=0, description="least significant bit; 0 = no quantisation")
     range: float = Field(np.inf, gt=0, description="output clips at +-range")

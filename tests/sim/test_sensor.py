@@ -98,3 +98,14 @@ def test_ambient_swing_is_filtered_by_the_thermal_time_constant():
     amplitude = (out.T_die[late].max() - out.T_die[late].min()) / 2
     w = 2 * np.pi / 600.0
     np.testing.assert_allclose(amplitude, 2.0 / np.sqrt(1 + (w * 100.0) ** 2), rtol=1e-4)
+
+
+def test_bias_instability_is_a_gauss_markov_process_of_its_sd_and_correlation_time():
+    from imupipe.sim.engine import gauss_markov
+
+    t = np.arange(0.0, 40_000.0, 0.05)
+    x = gauss_markov(t, 2e-5, 100.0, np.random.default_rng(0))
+    assert np.allclose(x.std(axis=0), 2e-5, rtol=0.1)
+    lag = int(100.0 / 0.05)
+    rho = np.mean([np.corrcoef(x[:-lag, i], x[lag:, i])[0, 1] for i in range(3)])
+    assert abs(rho - np.exp(-1)) < 0.05
