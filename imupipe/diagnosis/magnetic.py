@@ -112,6 +112,9 @@ def motion_rows(ev: Evaluation, rests: Rests, t_s: np.ndarray, y: np.ndarray, ma
     k = np.searchsorted(ms.origin[order], t_s, "right") - 1
     motion = np.where(k >= 0, order[np.maximum(k, 0)], -1)
     inside = (k >= 0) & (t_s <= ms.end[np.maximum(motion, 0)])
+    for e in ev.events:  # a motion that carried the unit elsewhere may end in another field
+        if e.kind == "translation":
+            inside &= (t_s < e.window[0]) | (t_s > e.window[1])
     counts = np.bincount(motion[inside], minlength=ms.count)
     inside &= counts[np.maximum(motion, 0)] >= MIN_MOTION_SAMPLES
     if not inside.any():
