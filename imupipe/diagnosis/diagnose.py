@@ -42,12 +42,14 @@ def map_unknown_cells(map_doc: dict | None, level: float) -> list[dict]:
     return [c for c, f in zip(cells, found, strict=True) if f]
 
 
-def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str = "", q: float = Q_FDR) -> dict:
+def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str = "", q: float = Q_FDR,
+             latitude_deg: float | None = None) -> dict:
     lin = ev.lin
     level = family_levels(q)
     rigid = rigid_walks(lin)
     tested = [examine(lin, c, rigid) for c in candidates(lin, ev.frame, effects)]
-    rp, findings, not_confirmed, kept = catalogue_findings(lin, tested, effects, level["catalogue"])
+    rp, findings, not_confirmed, kept = catalogue_findings(lin, tested, effects, level["catalogue"],
+                                                           latitude_deg=latitude_deg)
     # structure the accepted terms leave: the generic library tested conditionally on them
     given = np.hstack([f.tested.projected for f in kept]) if kept else None
     left = structure_cells(lin, given, rp, bootstrap=True, level=level["structure"])
@@ -71,12 +73,12 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
                       "cells and the map's cells (Bonferroni across, Benjamini-Hochberg within)"}
 
 
-def catalogue_findings(lin, tested: list, effects: dict, q: float = Q_FDR, held_out=heldout
-                       ) -> tuple[np.ndarray, list[dict], list[dict], list[Finding]]:
-    """The selected catalogue terms (``select``) that also predict held-out data better
-    (``held_out(lin, rp, finding, others)``: RMS before, after, z): ``(rp, findings,
-    not_confirmed, kept)``, ``rp`` the residual with the nominal model refitted."""
-    rp, accepted = select(lin, tested, q)
+def catalogue_findings(lin, tested: list, effects: dict, q: float = Q_FDR, held_out=heldout,
+                       latitude_deg: float | None = None) -> tuple[np.ndarray, list[dict], list[dict], list[Finding]]:
+    """The selected catalogue terms (``select``, with the recording's latitude when known) that
+    also predict held-out data better (``held_out(lin, rp, finding, others)``: RMS before, after,
+    z): ``(rp, findings, not_confirmed, kept)``, ``rp`` the residual with the nominal model refitted."""
+    rp, accepted = select(lin, tested, q, latitude_deg)
     findings, not_confirmed, kept = [], [], []
     for i, f in enumerate(accepted):
         doc = _finding(lin, rp, f, accepted[:i] + accepted[i + 1:], effects, held_out)

@@ -177,12 +177,12 @@ def _key(c: Candidate) -> tuple:
 
 
 def diagnose_pooled(evaluations: list[Evaluation], effects: dict, sessions: list[str],
-                    q: float = Q_FDR, files: list[str] | None = None) -> dict:
+                    q: float = Q_FDR, files: list[str] | None = None, latitude_deg: float | None = None) -> dict:
     """The pooled ``diagnosis.json`` of several sessions of one unit (``sessions``: their names).
     Findings are catalogue terms only (each session's own diagnosis maps its unexplained
     structure); a finding's ``windows`` are seconds from the first sample of the session that
     ``window_sessions`` names at the same place. ``files`` name the sessions in errors
-    (default ``sessions``)."""
+    (default ``sessions``); ``latitude_deg`` the unit's, when known (``select._earth_rivals``)."""
     if len(evaluations) < 2:
         raise ImupipeError("a pooled diagnosis needs at least two sessions")
     parts = [ev.lin for ev in evaluations]
@@ -199,7 +199,8 @@ def diagnose_pooled(evaluations: list[Evaluation], effects: dict, sessions: list
                                                          in zip(parts, own, rigid_own) if o is not None])
     by_session = len(parts) >= BY_SESSION_MIN
     _, findings, not_confirmed, _ = catalogue_findings(lin, tested, effects, q,
-                                                       session_heldout(parts) if by_session else heldout)
+                                                       session_heldout(parts) if by_session else heldout,
+                                                       latitude_deg)
     for f in findings:
         f["windows"], f["window_sessions"] = _session_windows(lin.model, f["windows"], sessions)
     return {"session": " + ".join(sessions), "sessions": sessions, "findings": findings,

@@ -76,6 +76,7 @@ LAG_MIN_S = SMOOTH_S  # s: a shorter fitted thermal lag is the read-out's quanti
 WHITENED = "whitened"  # a term judged on every row it reaches, whitened (the gyro's inside motions)
 GYRO_STEP = 1e-7  # rad/s: the largest perturbation of a gyro sample when differencing a term's column
 EARTH_IMPLAUSIBLE = 1.2  # a vertical rate above this many Earth rates is not Earth's
+EARTH_AGREE_SD = 3.0  # with the latitude known, a vertical rate this close to Earth's (in its sd) is Earth's
 UNTESTED = {
     "gyro_saturation": "not a term to fit: clipped gyro samples sit on the rails of the full scale; the "
                        "motions holding them are left out of the fits and reported as saturation events",
@@ -482,11 +483,14 @@ class Finding:
     theta: np.ndarray = None  # type: ignore[assignment]
     p_asymptotic: float = float("nan")  # chi-square's, before the bootstrap's floor of 1/(draws + 1)
     rivals: list[str] = field(default_factory=list)  # effects that explain it as well (``_rivals``)
+    theta_sd: np.ndarray = None  # type: ignore[assignment]  # 1-sigma of theta in the joint fit
 
 
-def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR) -> tuple[np.ndarray, list[Finding]]:
+def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR, latitude_deg: float | None = None
+           ) -> tuple[np.ndarray, list[Finding]]:
     """Forward selection with BH at each step and a backward check; returns the residual
-    with the nominal globals refitted (``rp``) and the accepted findings (theta fitted jointly)."""
+    with the nominal globals refitted (``rp``) and the accepted findings (theta fitted jointly).
+    ``latitude_deg``: the recording's, when known (``_earth_rivals``)."""
     z_g, z_l = lin.system.solve(lin.J_g.T @ lin.r, lin.J_l.T @ lin.r)
     rp = lin.r - lin.J_g @ z_g - lin.J_l @ z_l  # the globals refitted too (Gauss-Newton step)
     n_rows = len(rp)
@@ -537,15 +541,19 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR) -> tuple[np.
             break
     _earth_or_g(accepted, pool, stat, n_rows)
     _rivals(accepted, tested, stat, q)  # a rival too faint to be named can still explain it as well
+    sd = np.zeros(0)
     if accepted:
         A = np.hstack([f.tested.projected for f in accepted])
         theta = -np.linalg.lstsq(A, rp, rcond=None)[0]  # r(theta) = rp + A theta, minimised
+        r = rp + A @ theta
+        sd = np.sqrt(np.diag(np.linalg.pinv(A.T @ A)) * max(1.0, float(r @ r) / max(n_rows - len(theta), 1)))
         o = 0
         for f in accepted:
             k = f.tested.projected.shape[1]
             f.theta = theta[o:o + k]
+            f.theta_sd = sd[o:o + k]
             o += k
-    _earth_rivals(accepted, pool)
+    _earth_rivals(accepted, pool, latitude_deg)
     return rp, accepted
 
 
@@ -591,16 +599,21 @@ def _earth_or_g(accepted: list[Finding], pool: list[Tested], stat, n_rows: int) 
                                                 p_asymptotic=pa_e)
 
 
-def _earth_rivals(accepted: list[Finding], pool: list[Tested]) -> None:
+def _earth_rivals(accepted: list[Finding], pool: list[Tested], latitude_deg: float | None = None) -> None:
     """The naming trap the parsimony rule leaves (in place): a vertical rate Earth can make is, at
     rest, an isotropic g-sensitivity as well; without the latitude neither is stood behind (a
-    rate beyond ``EARTH_IMPLAUSIBLE`` Earth rates is the g-sensitivity, ``diagnose`` names it)."""
+    rate beyond ``EARTH_IMPLAUSIBLE`` Earth rates is the g-sensitivity, ``diagnose`` names it).
+    With the latitude known, a rate within ``EARTH_AGREE_SD`` of Earth's there is Earth's."""
     if not any(t.candidate.effect == "gyro_g_sensitivity" for t in pool):
         return
     for f in accepted:
-        if f.tested.candidate.effect == "earth_rotation" and abs(f.theta[0]) <= EARTH_IMPLAUSIBLE * EARTH_RATE \
-                and "gyro_g_sensitivity" not in f.rivals:
-            f.rivals.append("gyro_g_sensitivity")
+        if f.tested.candidate.effect != "earth_rotation" or abs(f.theta[0]) > EARTH_IMPLAUSIBLE * EARTH_RATE \
+                or "gyro_g_sensitivity" in f.rivals:
+            continue
+        if latitude_deg is not None and \
+                abs(f.theta[0] - EARTH_RATE * np.sin(np.radians(latitude_deg))) <= EARTH_AGREE_SD * f.theta_sd[0]:
+            continue
+        f.rivals.append("gyro_g_sensitivity")
 
 
 def raw_units(lin: Linearised, r: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:

@@ -79,7 +79,8 @@ def diagnose_sessions(sessions: Sequence[Path], pipeline: Path | None = None, ou
                 raise ImupipeError(f"{session}: {exc}") from exc
             p.advance(task)
         effects = {name: registry.get("effects", name) for name in registry.names("effects")}
-        doc = diagnose_pooled(evaluations, effects, ids, q=node.params.fdr_q, files=[str(s) for s in sessions])
+        doc = diagnose_pooled(evaluations, effects, ids, q=node.params.fdr_q, files=[str(s) for s in sessions],
+                              latitude_deg=node.params.latitude_deg)
         doc["session_files"] = [str(s) for s in sessions]
         doc["bias_walks"] = {sid: {"q_accel": list(a), "q_gyro": list(g)} for sid, (a, g) in zip(ids, walks)}
         doc["single_session"] = _single_session(Path(out), ids, doc)

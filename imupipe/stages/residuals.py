@@ -42,6 +42,10 @@ class MapParams(Params):
     """False-discovery rate of the flagged cells (Benjamini-Hochberg)."""
     g_m_s2: LocalGravity | None = None
     """Local gravity, m/s^2; default: the one the calibration was fitted with."""
+    latitude_deg: float | None = Field(None, ge=-90, le=90)
+    """The recording's latitude, deg, when known: the diagnosis then names a vertical gyro rate
+    within 3 sd of Earth's there Earth's rate (unknown, it cannot tell it from an isotropic
+    g-sensitivity at rest)."""
 
 
 def _events(table: pa.Table | None) -> list[Event]:
@@ -166,7 +170,7 @@ def diagnose_session(inputs: Mapping[str, pa.Table], params: MapParams, solver: 
     doc = residual_map(ev, q=params.fdr_q, extra=magnetometer_rows(inputs, ev))
     registry = make_registry()
     effects = {name: registry.get("effects", name) for name in registry.names("effects")}
-    diag = diagnose(ev, doc, effects, q=params.fdr_q)
+    diag = diagnose(ev, doc, effects, q=params.fdr_q, latitude_deg=params.latitude_deg)
     table = pa.table({
         "effect": [f["effect"] for f in diag["findings"]],
         "sensor": [f["sensor"] for f in diag["findings"]],

@@ -1,14 +1,16 @@
 """The naming traps a recording cannot resolve: an accepted term gets a rival when the rival is
 significant in its place and the term adds nothing beyond the rival; nested terms are left to
-parsimony. The rule on stand-in statistics (the sessions that exercise it end to end are the
-bench's: a thermal lag whose start-up falls in one long rest)."""
+parsimony; Earth's rate stands where a known latitude agrees. The rule on stand-in statistics
+(the sessions that exercise it end to end are the bench's: a thermal lag whose start-up falls
+in one long rest)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from imupipe.diagnosis import select
-from imupipe.diagnosis.select import Candidate, Finding, _rivals
+from imupipe.diagnosis.select import Candidate, Finding, _earth_rivals, _rivals
+from imupipe.effects.earth_rotation import EARTH_RATE
 
 Q = 0.05
 
@@ -51,3 +53,19 @@ def test_a_term_inside_a_larger_one_is_not_its_rival():
     f = Finding(earth, 10.0, 1e-4, -5.0)
     _rivals([f], [earth, g_sens], _stat({"gyro_g_sensitivity": 1e-4}, {"gyro_g_sensitivity": 0.9}), Q)
     assert f.rivals == []
+
+
+def test_earths_rate_stands_behind_itself_only_where_the_known_latitude_agrees():
+    rng = np.random.default_rng(2)
+    G = rng.standard_normal((50, 9))
+    earth, g_sens = _tested("earth_rotation", G[:, :1]), _tested("gyro_g_sensitivity", G)
+    at_48 = EARTH_RATE * np.sin(np.radians(48.0))
+
+    def finding(rate: float) -> Finding:
+        return Finding(earth, 10.0, 1e-4, -5.0, theta=np.array([rate]), theta_sd=np.array([0.05 * at_48]))
+
+    for latitude, rate, rival in ((None, at_48, True), (48.0, at_48, False), (48.0, 1.02 * at_48, False),
+                                  (48.0, 0.5 * at_48, True), (-48.0, at_48, True)):
+        f = finding(rate)
+        _earth_rivals([f], [earth, g_sens], latitude)
+        assert (f.rivals == ["gyro_g_sensitivity"]) == rival, (latitude, rate)
