@@ -462,12 +462,17 @@ class JointModel:
                 x[self.stages.knot_start[self.p[j]] + np.arange(2 * (K - 1))] = np.outer(frac, zK[j]).ravel()
         return x
 
-    def _endpoints(self, P: dict, x_l: np.ndarray, jacobian: bool = True, with_globals: bool = True):
+    def _endpoints(self, P: dict, x_l: np.ndarray, jacobian: bool = True, with_globals: bool = True,
+                   rate_columns: np.ndarray | None = None):
         """Gnomonic end-point ``z_K`` (m, 2) of every motion and what it needs for derivatives
         (``jacobian=False``: None for ``dz_gyro``, ``dz_dq`` and ``D``; ``with_globals=False``:
-        the rate derivatives and ``dz_gyro`` hold the 6 walk columns only)."""
+        the rate derivatives and ``dz_gyro`` hold the 6 walk columns only; ``rate_columns``: see
+        ``residuals``)."""
         omega, D = self._rates(P, x_l, derivatives=jacobian)
-        if D is not None and not with_globals:
+        if D is not None and rate_columns is not None:
+            D = np.zeros((len(omega), 3, 21))
+            D[:, :, :rate_columns.shape[2]] = rate_columns
+        elif D is not None and not with_globals:
             D = RateDerivatives(D.coef, D.basis[:, :, 15:])
         att = Attitude.integrate(self.quad, omega)
         u, du = self.gravity(x_l)
@@ -482,6 +487,21 @@ class JointModel:
         dz_gyro = np.einsum("mai,mij,mjp->map", G, -skew(w), phi_T)  # (m, 2, 21)
         dz_dq = np.einsum("mai,mij,mjk->mak", G, att.total, du[self.qr])  # (m, 2, 2)
         return zK, dz_gyro, dz_dq, att, D, omega, u, du
+
+    def gyro_columns(self, x_g: np.ndarray, x_l: np.ndarray, dy: np.ndarray) -> np.ndarray:
+        """(N, k) d r / d theta of a term ``dy`` (N_g, 3, k) added to the motions' raw gyro samples,
+        analytically: the calibration turns it into rate derivatives ``M_g dy`` whose columns the
+        residuals' own Jacobian carries (``rate_columns``), twelve at a time; zero off the motions' rows."""
+        M_g = self.unpack(x_g)["M_g"]
+        gl = self.glob.slices
+        slots = np.arange(gl["M_g"].start, gl["b_g"].stop)
+        motion = self.rows.of("turn") | self.rows.of("accel_motion")
+        out = np.zeros((len(self.rows.block), dy.shape[2]))
+        for a in range(0, dy.shape[2], len(slots)):
+            part = np.einsum("ab,nbk->nak", M_g, dy[:, :, a:a + len(slots)])
+            J_g = self.residuals(x_g, x_l, rate_columns=part)[1]
+            out[motion, a:a + part.shape[2]] = J_g[motion][:, slots[:part.shape[2]]]
+        return out
 
     def turn_view(self, x_g: np.ndarray, x_l: np.ndarray) -> dict[str, np.ndarray]:
         """Per motion, in the body frame at its end (gauge frame): ``predicted`` (m, 3) the rest
@@ -551,11 +571,14 @@ class JointModel:
 
     # ------------------------------------------------------------------ residuals
     def residuals(self, x_g: np.ndarray, x_l: np.ndarray, signals: bool = False, jacobian: bool = True,
-                  with_globals: bool = True):
+                  with_globals: bool = True, rate_columns: np.ndarray | None = None):
         """Whitened residual ``r`` (N,), ``J_g`` (N, P_g) dense, ``J_l`` (N, P_l) CSR; with
         ``signals`` also a dict of the model's intermediate quantities (predictions, gravity);
         ``jacobian=False``: the residual alone (None for both Jacobians, far cheaper);
-        ``with_globals=False``: ``J_g`` has no columns (a fit of the nuisances alone)."""
+        ``with_globals=False``: ``J_g`` has no columns (a fit of the nuisances alone).
+        ``rate_columns`` (N_g, 3, k <= 12): derivatives of the motions' calibrated rates w.r.t. k
+        other parameters, in place of the calibration's: on the motions' rows (turns, samples)
+        ``J_g``'s first k gyro columns (M_g, then b_g) are then their columns (``gyro_columns``)."""
         P = self.unpack(x_g)
         n, g, gl = self.n, self.g, self.glob.slices
         Pg, Pl = self.glob.size, self.stages.size
@@ -593,7 +616,8 @@ class JointModel:
 
         local.flat = flat
 
-        zK, dz_gyro, dz_dq, att, D, omega, u, du = self._endpoints(P, x_l, jacobian, with_globals) if self.m else \
+        zK, dz_gyro, dz_dq, att, D, omega, u, du = self._endpoints(P, x_l, jacobian, with_globals,
+                                                                   rate_columns) if self.m else \
             (None,) * 6 + self.gravity(x_l)
         wga, wgb = self.walk_states(x_l, "wg")
         waa, wab = self.walk_states(x_l, "wa")

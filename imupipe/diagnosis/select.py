@@ -44,8 +44,6 @@ here yet: ``UNTESTED`` lists them with the reason.
 
 from __future__ import annotations
 
-import copy
-import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -74,7 +72,6 @@ BOOT_DRAWS = 999
 RIGID = 1e3  # weight on the walks' increments when the visible fraction is measured (q / 1e6)
 LAG_MIN_S = SMOOTH_S  # s: a shorter fitted thermal lag is the read-out's quantisation
 WHITENED = "whitened"  # a term judged on every row it reaches, whitened (the gyro's inside motions)
-GYRO_STEP = 1e-7  # rad/s: the largest perturbation of a gyro sample when differencing a term's column
 EARTH_IMPLAUSIBLE = 1.2  # a vertical rate above this many Earth rates is not Earth's
 EARTH_AGREE_SD = 3.0  # with the latitude known, a vertical rate this close to Earth's (in its sd) is Earth's
 UNTESTED = {
@@ -228,23 +225,9 @@ class Signals:
         return C
 
     def gyro_motion_column(self, dy: np.ndarray) -> np.ndarray:
-        """(N, k) d r / d theta of a term ``dy`` (N_g, 3, k) added to the motions' gyro samples: the
-        model's own residuals, differenced (a perturbation of at most ``GYRO_STEP``, whose attitude
-        change is ~1e-7 rad: the response is linear far beyond the rounding of the residuals)."""
-        model, lin = self.model, self.lin
-        out = np.zeros((len(lin.r), dy.shape[2]))
-        for j in range(dy.shape[2]):
-            d = dy[:, :, j]
-            size = float(np.abs(d).max()) if d.size else 0.0
-            if size == 0:
-                continue
-            h = GYRO_STEP / size
-
-            m = copy.copy(model)
-            m.motions = dataclasses.replace(model.motions, y=model.motions.y + h * d)
-            r = m.residuals(lin.x_g, lin.x_l, jacobian=False)[0]
-            out[:, j] = -(r - self.r0) / h  # the term in the prediction: r falls
-        return out
+        """(N, k) the column of a term ``dy`` (N_g, 3, k) added to the motions' gyro samples, through
+        the attitude they integrate to (``JointModel.gyro_columns``; the term in the prediction: r falls)."""
+        return -self.model.gyro_columns(self.lin.x_g, self.lin.x_l, dy)
 
 
 def temperature_curve(model, t_first: float, t_last: float):

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+
 import numpy as np
 import pytest
 from forward_synth import G, noise_free_imu, rests_from_truth, small_gimbal, small_sphere_rig
@@ -116,3 +119,27 @@ def test_linear_time_fit_is_the_dense_least_squares_optimum(noise_free):
     assert lin.converged
     np.testing.assert_allclose(lin.x_g, dense.x[:P_g], rtol=1e-9, atol=1e-12)
     assert abs(lin.chi2 - 2 * dense.cost) <= 1e-9 * lin.chi2
+
+
+def test_a_term_on_the_motions_gyro_samples_has_the_columns_its_differenced_residuals_give(fitted):
+    """``gyro_columns``: the response of every row to a term added to the motions' raw gyro
+    samples, through the attitude, against central differences of the residuals (more columns
+    than the twelve one Jacobian carries)."""
+    lin = fitted[-1]
+    model = lin.model
+    ms = model.motions
+    rng = np.random.default_rng(4)
+    dy = rng.standard_normal((len(ms.t), 3, 14)) * 1e-3
+    dy[:, :, 0] = np.abs(ms.y)  # a rate-sign term on every axis
+    J = model.gyro_columns(lin.x_g, lin.x_l, dy)
+    for c in (0, 5, 13):
+        h = 1e-3
+
+        def r(step: float) -> np.ndarray:
+            m = copy.copy(model)
+            m.motions = dataclasses.replace(ms, y=ms.y + step * dy[:, :, c])
+            return m.residuals(lin.x_g, lin.x_l, jacobian=False)[0]
+
+        fd = (r(h) - r(-h)) / (2 * h)
+        assert np.linalg.norm(fd) > 0
+        assert np.linalg.norm(J[:, c] - fd) < 1e-6 * np.linalg.norm(fd)
