@@ -91,8 +91,8 @@ class _Carried:
     """Motion rows a gyro term reaches through the integrated attitude. A slow signal is its mean
     over a motion's few seconds there, a constant gyro bias: its column on those rows is the
     bias's Jacobian column ``J`` (m, 3) times that mean ``X`` (m, u). A signal that changes within
-    a motion (the specific force, turning with the attitude) has its exact column in ``E`` (m, k),
-    the model's residuals differenced (``Signals.gyro_motion_column``); zero for the others."""
+    a motion (the specific force, turning with the attitude) has its exact column in ``E`` (m, k)
+    (``Signals.gyro_motion_column``); zero for the others."""
 
     rows: np.ndarray  # (m,)
     J: np.ndarray

@@ -44,8 +44,8 @@ class MapParams(Params):
     """Local gravity, m/s^2; default: the one the calibration was fitted with."""
     latitude_deg: float | None = Field(None, ge=-90, le=90)
     """The recording's latitude, deg, when known: the diagnosis then names a vertical gyro rate
-    within 3 sd of Earth's there Earth's rate (unknown, it cannot tell it from an isotropic
-    g-sensitivity at rest)."""
+    within 3 sd of Earth's there Earth's rate (without it, an ``unknown`` naming Earth's rate and
+    an isotropic g-sensitivity: at rest the two are the same)."""
 
 
 def _events(table: pa.Table | None) -> list[Event]:
