@@ -469,8 +469,8 @@ class JointModel:
         the rate derivatives and ``dz_gyro`` hold the 6 walk columns only; ``rate_columns``: see
         ``residuals``)."""
         omega, D = self._rates(P, x_l, derivatives=jacobian)
-        if D is not None and rate_columns is not None:
-            D = np.zeros((len(omega), 3, 21))
+        if D is not None and rate_columns is not None:  # the 15 globals' places; no walk columns
+            D = np.zeros((len(omega), 3, 15))
             D[:, :, :rate_columns.shape[2]] = rate_columns
         elif D is not None and not with_globals:
             D = RateDerivatives(D.coef, D.basis[:, :, 15:])
@@ -578,7 +578,8 @@ class JointModel:
         ``with_globals=False``: ``J_g`` has no columns (a fit of the nuisances alone).
         ``rate_columns`` (N_g, 3, k <= 12): derivatives of the motions' calibrated rates w.r.t. k
         other parameters, in place of the calibration's: on the motions' rows (turns, samples)
-        ``J_g``'s first k gyro columns (M_g, then b_g) are then their columns (``gyro_columns``)."""
+        ``J_g``'s first k gyro columns (M_g, then b_g) are then their columns (``gyro_columns``),
+        and ``J_l`` is None."""
         P = self.unpack(x_g)
         n, g, gl = self.n, self.g, self.glob.slices
         Pg, Pl = self.glob.size, self.stages.size
@@ -602,8 +603,10 @@ class JointModel:
         block.reserve = lambda n: J_g[row0:row0 + n]  # the next n rows' J_g, to fill in place
         block.globals = with_globals
 
+        with_locals = jacobian and rate_columns is None  # other parameters' columns: no J_l (memory)
+
         def local(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray) -> None:
-            if not jacobian:
+            if not with_locals:
                 return
             keep = cols >= 0
             trip.append((rows[keep].ravel(), cols[keep].ravel(), vals[keep].ravel()))
@@ -611,7 +614,7 @@ class JointModel:
         def flat(where, vals: np.ndarray) -> None:
             """Entries ``vals`` (kept ones only) whose rows and columns ``where()`` returns (a
             constant pattern: asked for only until the model knows J_l's sparsity)."""
-            if jacobian:
+            if with_locals:
                 trip.append((where, None, vals))
 
         local.flat = flat
@@ -679,6 +682,8 @@ class JointModel:
             return (r, None, None, sig) if signals else (r, None, None)
         if len(r) != len(J_g):
             raise AssertionError("row metadata and residual rows disagree")
+        if not with_locals:
+            return (r, J_g, None, sig) if signals else (r, J_g, None)
         vv = np.concatenate([t[2] for t in trip]) if trip else np.zeros(0)
         J_l = self._local_jacobian(trip, vv, len(r), Pl)
         return (r, J_g, J_l, sig) if signals else (r, J_g, J_l)
