@@ -143,7 +143,7 @@ class Signals:
         self.lin, self.model = lin, model
         P = model.unpack(lin.x_g)
         self.S_a = P["S_a"]
-        self.r0, _, _, sig = model.residuals(lin.x_g, lin.x_l, signals=True, jacobian=False)
+        sig = model.residuals(lin.x_g, lin.x_l, signals=True, jacobian=False)[3]
         g = model.g
         self.f_rest = g * sig["gravity_rest"]  # (n, 3) model frame
         self.T_rest = model.dT + T_REF_C
@@ -524,7 +524,6 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR, latitude_deg
             break
     _earth_or_g(accepted, pool, stat, n_rows)
     _rivals(accepted, tested, stat, q)  # a rival too faint to be named can still explain it as well
-    sd = np.zeros(0)
     if accepted:
         A = np.hstack([f.tested.projected for f in accepted])
         theta = -np.linalg.lstsq(A, rp, rcond=None)[0]  # r(theta) = rp + A theta, minimised
