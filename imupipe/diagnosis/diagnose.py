@@ -85,7 +85,7 @@ def catalogue_findings(lin, tested: list, effects: dict, q: float = Q_FDR, held_
         rejects = f.tested.candidate.rejects
         unphysical = rejects(f.theta) if rejects else None  # e.g. a thermal lag the read-out makes
         if not unphysical and doc["heldout_rms_after"] < doc["heldout_rms_before"] and doc["heldout_z"] >= HELDOUT_Z:
-            findings.append(_ambiguous(doc, f.rivals) if f.rivals else doc)
+            findings.append(_partial(doc, f.beyond) if f.beyond else _ambiguous(doc, f.rivals) if f.rivals else doc)
             kept.append(f)
         else:  # significant on the data it was fitted to, not better on data it was not: not stood behind
             not_confirmed.append({"effect": doc["effect"], "sensor": doc["sensor"], "regime": doc["regime"],
@@ -193,21 +193,36 @@ def _unknown_finding(sensor: str, axes: list, regime: str, windows: list, parame
             "explanation": explanation}
 
 
+def _not_stood_behind(doc: dict, candidates: list[str], explanation: str) -> dict:
+    """A confirmed term reported as an ``unknown`` naming ``candidates``, its fit and held-out kept."""
+    out = _unknown_finding(
+        doc["sensor"], doc["axes"], doc["regime"], doc["windows"],
+        {"candidates": candidates, doc["effect"]: doc["parameters"]}, doc["significance"]["statistic"],
+        doc["significance"]["p_value"], explanation)
+    out["heldout_rms_before"], out["heldout_rms_after"], out["heldout_z"] = (
+        doc["heldout_rms_before"], doc["heldout_rms_after"], doc["heldout_z"])
+    return out
+
+
 def _ambiguous(doc: dict, rivals: list[str]) -> dict:
     """A confirmed term whose rivals explain the recording as well: an ``unknown`` naming each."""
     names = [doc["effect"], *rivals]
     reveal = "; ".join(f"{n}: {REVEAL[n]}" for n in names if n in REVEAL)
-    out = _unknown_finding(
-        doc["sensor"], doc["axes"], doc["regime"], doc["windows"],
-        {"candidates": names, doc["effect"]: doc["parameters"]}, doc["significance"]["statistic"],
-        doc["significance"]["p_value"],
+    return _not_stood_behind(
+        doc, names,
         f"The {doc['sensor']} residuals in the {doc['regime']} rows carry a term that {' or '.join(names)} "
         f"explains equally well on this recording (each significant in the other's place, neither "
         f"beyond the other): a naming trap it cannot resolve, so neither is stood behind. "
         f"To tell them apart: {reveal or 'a recording that excites them differently'}.")
-    out["heldout_rms_before"], out["heldout_rms_after"], out["heldout_z"] = (
-        doc["heldout_rms_before"], doc["heldout_rms_after"], doc["heldout_z"])
-    return out
+
+
+def _partial(doc: dict, larger: str) -> dict:
+    """A confirmed term a larger one outside the catalogue goes significantly beyond (``Finding.beyond``)."""
+    return _not_stood_behind(
+        doc, [doc["effect"]],
+        f"{doc['effect']} explains part of the {doc['sensor']} residuals in the {doc['regime']} rows, but "
+        f"{larger}, outside the catalogue, goes significantly beyond it: the structure is not "
+        f"{doc['effect']} alone, so it is not stood behind.")
 
 
 def _unknown(cell: dict) -> dict:

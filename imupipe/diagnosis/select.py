@@ -74,6 +74,7 @@ LAG_MIN_S = SMOOTH_S  # s: a shorter fitted thermal lag is the read-out's quanti
 WHITENED = "whitened"  # a term judged on every row it reaches, whitened (the gyro's inside motions)
 EARTH_IMPLAUSIBLE = 1.2  # a vertical rate above this many Earth rates is not Earth's
 EARTH_AGREE_SD = 3.0  # with the latitude known, a vertical rate this close to Earth's (in its sd) is Earth's
+SIZE_EFFECT = "a lever arm per accelerometer axis (a size effect: each axis senses at its own point)"
 UNTESTED = {
     "gyro_saturation": "not a term to fit: clipped gyro samples sit on the rails of the full scale; the "
                        "motions holding them are left out of the fits and reported as saturation events",
@@ -115,6 +116,7 @@ class Candidate:
     fixed: dict = field(default_factory=dict)
     rejects: object = None  # theta -> why these parameters are not the effect (None: they may be)
     heldout_sensor: str = ""  # the triad whose held-out rows prove it (default: its own)
+    within: tuple[str, np.ndarray] | None = None  # a larger term outside the catalogue: (what, columns)
 
 
 @dataclass
@@ -257,10 +259,14 @@ def candidates(lin: Linearised, frame: np.ndarray, registry) -> list[Candidate]:
 
     eff = registry
     if s.has_motion and "lever_arm" in eff:
-        R = eff["lever_arm"].regressors({"omega": s.omega, "alpha": s.alpha})
-        C = s.column(s.rows_m, s.model.W_sample, np.einsum("ij,njk->nik", s.S_a, R))
+        R = np.einsum("ij,njk->nik", s.S_a, eff["lever_arm"].regressors({"omega": s.omega, "alpha": s.alpha}))
+        C = s.column(s.rows_m, s.model.W_sample, R)
+        per_axis = np.zeros((len(R), 3, 9))  # each sensing axis at its own point (a size effect)
+        for i in range(3):
+            per_axis[:, i, 3 * i:3 * i + 3] = R[:, i]
         out.append(Candidate("lever_arm", "accel", "motion", ["r_x", "r_y", "r_z"], C,
-                             lambda th: {"r_m": list(Q.T @ th)}))
+                             lambda th: {"r_m": list(Q.T @ th)},
+                             within=(SIZE_EFFECT, s.column(s.rows_m, s.model.W_sample, per_axis))))
     if s.has_motion and "accel_gyro_time_offset" in eff:
         R = eff["accel_gyro_time_offset"].regressors({"f_dot": s.f_dot})
         C = s.column(s.rows_m, s.model.W_sample, np.einsum("ij,njk->nik", s.S_a, R))
@@ -466,6 +472,7 @@ class Finding:
     theta: np.ndarray = None  # type: ignore[assignment]
     p_asymptotic: float = float("nan")  # chi-square's, before the bootstrap's floor of 1/(draws + 1)
     rivals: list[str] = field(default_factory=list)  # effects that explain it as well (``_rivals``)
+    beyond: str = ""  # a larger term outside the catalogue significant beyond it (``_within_larger``)
     theta_sd: np.ndarray = None  # type: ignore[assignment]  # 1-sigma of theta in the joint fit
 
 
@@ -524,6 +531,7 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR, latitude_deg
             break
     _earth_or_g(accepted, pool, stat, n_rows)
     _rivals(accepted, tested, stat, q)  # a rival too faint to be named can still explain it as well
+    _within_larger(lin, accepted, stat, q)
     if accepted:
         A = np.hstack([f.tested.projected for f in accepted])
         theta = -np.linalg.lstsq(A, rp, rcond=None)[0]  # r(theta) = rp + A theta, minimised
@@ -557,6 +565,24 @@ def _rivals(accepted: list[Finding], pool: list[Tested], stat, q: float) -> None
                 continue
             if stat(f.tested, others + [Finding(t, 0.0, 0.0, 0.0)])[1] > q:
                 f.rivals.append(t.candidate.effect)
+
+
+def _within_larger(lin: Linearised, accepted: list[Finding], stat, q: float) -> None:
+    """The trap of a term that is a special case of a larger one outside the catalogue (in place):
+    one lever arm inside a lever arm per axis. Where the larger term's further directions are
+    significant beyond the accepted terms, the term explains only part of the structure and is
+    not stood behind alone (``Finding.beyond``; ``diagnose`` reports an ``unknown`` naming it)."""
+    for f in accepted:
+        c = f.tested.candidate
+        if c.within is None:
+            continue
+        name, columns = c.within
+        extra = _orth(project(lin, columns)[0], f.tested.projected)
+        _, sv, Vt = np.linalg.svd(extra, full_matrices=False)
+        extra = extra @ Vt[sv > 1e-8 * sv.max()].T  # the larger term's own directions only
+        larger = Tested(Candidate(name, c.sensor, c.regime, [], columns, lambda th: {}), extra, 1.0, [], np.inf)
+        if stat(larger, accepted)[1] <= q:
+            f.beyond = name
 
 
 def _within(A: np.ndarray, B: np.ndarray) -> bool:

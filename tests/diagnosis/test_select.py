@@ -1,6 +1,7 @@
 """A catalogue term's column is what the term, applied to the readings by the simulator, does to
 every row of the fitted model: rest means, the motions' accelerometer samples, and the rows the
-motions' gyro samples reach through the integrated attitude."""
+motions' gyro samples reach through the integrated attitude; a term inside a larger one outside
+the catalogue (one lever arm in a lever arm per axis) is tested against it."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from forward_synth import G, joint_model, noise_free_imu, rests_from_truth, smal
 
 from imupipe.diagnosis.forward import MotionAccel
 from imupipe.diagnosis.linearised import fit
-from imupipe.diagnosis.select import FOLDS, _fold_of_rows, candidates, examine, rigid_walks
+from imupipe.diagnosis.select import FOLDS, _fold_of_rows, candidates, examine, rigid_walks, select
 from imupipe.models import T_REF_C
 from imupipe.sim.api import known_effects, simulate_arrays
 from imupipe.sim.sensor import first_order_lag
@@ -90,3 +91,18 @@ def test_a_thermal_lags_column_is_what_the_lagged_read_out_does_to_every_row():
     for block in ("accel_rest", "gyro_rest", "accel_motion", "turn"):  # every row the read-out reaches
         assert np.linalg.norm(dr[lin.rows.of(block)]) > 0.1 * np.linalg.norm(dr)
     assert np.linalg.norm(dr - predicted) < 0.05 * np.linalg.norm(dr)
+
+
+def test_one_lever_arm_is_named_and_a_lever_arm_per_axis_is_only_part_of_the_story(fitted):
+    """A size effect (each accelerometer axis at its own point) holds one lever arm inside it: the
+    lever arm is accepted, and the per-axis term's further directions are tested beyond it."""
+    lin = fitted[-1]
+    (c,) = [c for c in candidates(lin, np.eye(3), known_effects()) if c.effect == "lever_arm"]
+    name, per_axis = c.within
+    noise = np.random.default_rng(5).standard_normal(len(lin.r))
+    d = 0.01
+    for term, beyond in ((c.columns @ [d, -d, d], ""), (per_axis @ (d * np.eye(3).ravel()), name)):
+        shifted = dataclasses.replace(lin, r=noise - term)
+        _, accepted = select(shifted, [examine(shifted, c)])
+        assert [f.tested.candidate.effect for f in accepted] == ["lever_arm"]
+        assert accepted[0].beyond == beyond
