@@ -22,7 +22,7 @@ from .evaluate import Evaluation
 from .library import structure_cells
 from .residual_map import benjamini_hochberg, windows
 from .select import (BLOCK_S, BOOT_DRAWS, EARTH_IMPLAUSIBLE, HELDOUT_Z, Q_FDR, REVEAL, UNTESTED, VISIBLE_MIN,
-                     Finding, candidates, examine, heldout, rigid_walks, select)
+                     Finding, candidates, examine, heldout, rigid_walks, select, theta_cov)
 
 AXES = ("x", "y", "z")
 SD_DRAWS = 400  # draws carrying a term's covariance to its parameters' standard deviations
@@ -165,12 +165,8 @@ def _parameter_sd(rp: np.ndarray, f: Finding, others: list[Finding], to_params, 
     """1-sigma of each numeric parameter: the term's covariance from the linearised joint fit with
     the other accepted terms (scaled by the affected rows' chi2/dof when above 1, as its test is),
     carried through ``to_params`` by ``draws`` seeded draws (exact for the linear maps most are)."""
-    A = np.hstack([g.tested.projected for g in others] + [f.tested.projected])
-    k = f.tested.projected.shape[1]
-    rows = np.any(f.tested.candidate.columns != 0, axis=1)
-    left = rp - A @ np.linalg.lstsq(A, rp, rcond=None)[0]
-    scale = max(1.0, float(left[rows] @ left[rows]) / max(int(rows.sum()) - k, 1))
-    cov = np.linalg.pinv(A.T @ A)[-k:, -k:] * scale
+    cov = theta_cov(rp, f, others)
+    k = len(cov)
     w, V = np.linalg.eigh((cov + cov.T) / 2)
     sample = f.theta + (np.random.default_rng(0).standard_normal((draws, k)) * np.sqrt(np.clip(w, 0, None))) @ V.T
     out = {}

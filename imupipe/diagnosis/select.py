@@ -473,7 +473,6 @@ class Finding:
     p_asymptotic: float = float("nan")  # chi-square's, before the bootstrap's floor of 1/(draws + 1)
     rivals: list[str] = field(default_factory=list)  # effects that explain it as well (``_rivals``)
     beyond: str = ""  # a larger term outside the catalogue significant beyond it (``_within_larger``)
-    theta_sd: np.ndarray = None  # type: ignore[assignment]  # 1-sigma of theta in the joint fit
 
 
 def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR, latitude_deg: float | None = None
@@ -535,15 +534,12 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR, latitude_deg
     if accepted:
         A = np.hstack([f.tested.projected for f in accepted])
         theta = -np.linalg.lstsq(A, rp, rcond=None)[0]  # r(theta) = rp + A theta, minimised
-        r = rp + A @ theta
-        sd = np.sqrt(np.diag(np.linalg.pinv(A.T @ A)) * max(1.0, float(r @ r) / max(n_rows - len(theta), 1)))
         o = 0
         for f in accepted:
             k = f.tested.projected.shape[1]
             f.theta = theta[o:o + k]
-            f.theta_sd = sd[o:o + k]
             o += k
-    _earth_rivals(accepted, pool, latitude_deg)
+    _earth_rivals(accepted, pool, rp, latitude_deg)
     return rp, accepted
 
 
@@ -607,7 +603,19 @@ def _earth_or_g(accepted: list[Finding], pool: list[Tested], stat, n_rows: int) 
                                                 p_asymptotic=pa_e)
 
 
-def _earth_rivals(accepted: list[Finding], pool: list[Tested], latitude_deg: float | None = None) -> None:
+def theta_cov(rp: np.ndarray, f: Finding, others: list[Finding]) -> np.ndarray:
+    """(k, k) covariance of ``f``'s theta in the linearised joint fit with ``others``, scaled by its
+    rows' chi2/dof when above 1 (as its test is)."""
+    A = np.hstack([g.tested.projected for g in others] + [f.tested.projected])
+    k = f.tested.projected.shape[1]
+    rows = np.any(f.tested.candidate.columns != 0, axis=1)
+    left = rp - A @ np.linalg.lstsq(A, rp, rcond=None)[0]
+    scale = max(1.0, float(left[rows] @ left[rows]) / max(int(rows.sum()) - k, 1))
+    return np.linalg.pinv(A.T @ A)[-k:, -k:] * scale
+
+
+def _earth_rivals(accepted: list[Finding], pool: list[Tested], rp: np.ndarray,
+                  latitude_deg: float | None = None) -> None:
     """The naming trap the parsimony rule leaves (in place): a vertical rate Earth can make is, at
     rest, an isotropic g-sensitivity as well; without the latitude neither is stood behind (a
     rate beyond ``EARTH_IMPLAUSIBLE`` Earth rates is the g-sensitivity, ``diagnose`` names it).
@@ -618,9 +626,10 @@ def _earth_rivals(accepted: list[Finding], pool: list[Tested], latitude_deg: flo
         if f.tested.candidate.effect != "earth_rotation" or abs(f.theta[0]) > EARTH_IMPLAUSIBLE * EARTH_RATE \
                 or "gyro_g_sensitivity" in f.rivals:
             continue
-        if latitude_deg is not None and \
-                abs(f.theta[0] - EARTH_RATE * np.sin(np.radians(latitude_deg))) <= EARTH_AGREE_SD * f.theta_sd[0]:
-            continue
+        if latitude_deg is not None:
+            sd = np.sqrt(theta_cov(rp, f, [g for g in accepted if g is not f])[0, 0])
+            if abs(f.theta[0] - EARTH_RATE * np.sin(np.radians(latitude_deg))) <= EARTH_AGREE_SD * sd:
+                continue
         f.rivals.append("gyro_g_sensitivity")
 
 

@@ -58,14 +58,13 @@ def test_a_term_inside_a_larger_one_is_not_its_rival():
 def test_earths_rate_stands_behind_itself_only_where_the_known_latitude_agrees():
     rng = np.random.default_rng(2)
     G = rng.standard_normal((50, 9))
-    earth, g_sens = _tested("earth_rotation", G[:, :1]), _tested("gyro_g_sensitivity", G)
     at_48 = EARTH_RATE * np.sin(np.radians(48.0))
-
-    def finding(rate: float) -> Finding:
-        return Finding(earth, 10.0, 1e-4, -5.0, theta=np.array([rate]), theta_sd=np.array([0.05 * at_48]))
+    column = G[:, :1] / np.linalg.norm(G[:, :1]) / (0.05 * at_48)  # the rate's sd: 5 % of Earth's at 48 deg
+    earth, g_sens = _tested("earth_rotation", column), _tested("gyro_g_sensitivity", G)
+    rp = np.zeros(50)
 
     for latitude, rate, rival in ((None, at_48, True), (48.0, at_48, False), (48.0, 1.02 * at_48, False),
                                   (48.0, 0.5 * at_48, True), (-48.0, at_48, True)):
-        f = finding(rate)
-        _earth_rivals([f], [earth, g_sens], latitude)
+        f = Finding(earth, 10.0, 1e-4, -5.0, theta=np.array([rate]))
+        _earth_rivals([f], [earth, g_sens], rp, latitude)
         assert (f.rivals == ["gyro_g_sensitivity"]) == rival, (latitude, rate)
