@@ -466,6 +466,7 @@ def print_summary(rows: dict[str, tuple[str, str, str]]) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--protocols", nargs="+", default=["gimbal", "standard"])
     ap.add_argument("--effects", nargs="+", default=EFFECTS + [ISOTROPIC, *OUTSIDE], help="'none': nulls only")
     ap.add_argument("--factors", nargs="+", type=float, default=[1.0, 2.0, 5.0])
@@ -476,7 +477,7 @@ def main() -> None:
     effects = [e for e in args.effects if e != "none"]
     folder = args.out or Path(tempfile.mkdtemp(prefix="diagnosis-bench-"))
     jobs = [(p, s, effects, args.factors, args.extra_nulls, str(folder / f"{p}-{s}")) for p in args.protocols
-            for s in range(args.seeds)]
+            for s in range(args.first_seed, args.first_seed + args.seeds)]
     t = time.perf_counter()
     with ProcessPoolExecutor(args.jobs) as pool:
         results = list(pool.map(one_seed, jobs))

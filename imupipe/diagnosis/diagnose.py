@@ -68,8 +68,9 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
             "fdr_q": q, "family_q": level,
             "method": "score tests against the fitted per-sample model (the larger p of chi-square and a wild "
                       f"bootstrap over {BLOCK_S:g}-s time blocks, {BOOT_DRAWS} draws), "
-                      "Benjamini-Hochberg forward selection with a backward check, 5-fold blocked "
-                      "cross-validation by rest and motion; q split among the catalogue, the structure "
+                      "Benjamini-Hochberg forward selection with a backward check, held-out proof by "
+                      "blocked cross-validation (stretches of time, or rests and motions, each held out in "
+                      "turn; the paired z of the predictive chi2's decrease); q split among the catalogue, the structure "
                       "cells and the map's cells (Bonferroni across, Benjamini-Hochberg within)"}
 
 

@@ -22,8 +22,8 @@ by effect, sensor, regime and fixed parameters: one effect, one parameter set ac
 sessions. ``diagnose_pooled`` then runs the single-session statistics (visible fraction, at
 least any one session's own; score tests, Benjamini-Hochberg forward selection, wild bootstrap)
 on the pooled system. The held-out check is by session from ``BY_SESSION_MIN`` sessions on
-(``session_heldout``: each predicted by what the others fitted), else by the blocked folds, each
-holding stretches of every session (with two, one session alone could not determine an effect
+(``session_heldout``: each predicted by what the others fitted), else by blocked stretches of
+time, each held out in turn (with two, one session alone could not determine an effect
 only both together show). ``pooled_walks`` estimates the bias walks from all sessions with one
 ``k``: the pooled model's nuisances (``pipeline/pooled.py`` evaluates each session with them).
 """
@@ -139,7 +139,7 @@ def pool(parts: list[Linearised], x_common: dict[str, np.ndarray] | None = None)
                                 for i, lin in enumerate(parts)]))
     m = np.cumsum([0] + [lin.model.m for lin in parts])
     # motions numbered across the sessions: the rests' and motions' group ids (``raw_units``,
-    # ``_fold_of_rows``: rests 0..n-1, then n + motion) stay distinct
+    # ``_row_groups``: rests 0..n-1, then n + motion) stay distinct
     motion = np.concatenate([lin.model.accel.motion + m[i] for i, lin in enumerate(parts)])
     model = PooledModel(
         rows=rows, glob=glob, stages=SimpleNamespace(offsets=offsets, size=int(offsets[-1])),
@@ -214,7 +214,7 @@ def diagnose_pooled(evaluations: list[Evaluation], effects: dict, sessions: list
                       f"{BOOT_DRAWS} draws), Benjamini-Hochberg forward selection with a backward check, "
                       + ("held out by session: each session predicted from the others' calibration and "
                          "terms, its own biases and nuisances refitted" if by_session else
-                         "5-fold blocked cross-validation whose folds hold stretches of every session")}
+                         "blocked cross-validation over stretches of every session, each held out in turn")}
 
 
 def _session_windows(model: PooledModel, wins: list, sessions: list[str]) -> tuple[list, list]:

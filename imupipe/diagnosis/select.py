@@ -20,13 +20,17 @@ the nuisances' Jacobian, through the fit's own block-tridiagonal system), so
   those accepted, Benjamini-Hochberg at ``q`` over them, the strongest significant one is
   accepted (its term refitted jointly with the others by the linearised Gauss-Newton step),
   then a backward check drops any accepted term that lost significance;
-- **held-out proof**: by blocked cross-validation (for a static or warm-up term, 5 folds of 4
-  contiguous stretches of time each, whole rests and whole motions) the calibration, every
-  nuisance and the term are refitted without a fold (one linearised step) and its residual
-  RMS in the sensor's units is compared without and with the term, with the paired z-score
-  of the improvement. Refitting the nuisances matters: a bias walk already fitted to the rows
-  it is judged on copies any slow term there. A motion term is held out by single rests and
-  motions.
+- **held-out proof**: by blocked cross-validation (for a static or warm-up term, 20
+  contiguous stretches of time, whole rests and whole motions, each held out in turn) the
+  calibration, every nuisance and the term are refitted without a stretch (one linearised
+  step) and its residual RMS in the sensor's units is compared without and with the term.
+  Refitting the nuisances matters: a bias walk already fitted to the rows it is judged on
+  copies any slow term there. The proof is the paired z-score over the stretches of the
+  predictive chi2's decrease (``_predictive_gain``): what the stretch adds to the fit's
+  chi2 with and without the term, which judges each prediction by its own uncertainty (a
+  walk bridging a held-out stretch is uncertain there; its squared error alone would
+  drown the term). A motion term is held out by single rests and motions, leave-one-out
+  in closed form (``_leave_one_out``).
 
 A p-value is the larger of the asymptotic (chi-square) one and a wild bootstrap's over 5-s
 time blocks (``wild_p``: the recording's own noise, whatever its colour, without a noise
@@ -62,8 +66,7 @@ from .residual_map import benjamini_hochberg
 
 VISIBLE_MIN = 0.05
 Q_FDR = 0.05
-FOLDS = 5
-STRETCHES_PER_FOLD = 4  # held-out stretches per fold, spread over the recording
+STRETCHES = 20  # contiguous stretches of time, each held out in turn
 HELDOUT_Z = 1.645  # one-sided 5 %: a finding must predict held-out data significantly better
 WARMUP_TAUS_S = (30.0, 120.0, 600.0)
 NONCENTRALITY_80 = 7.85  # chi2_1 noncentrality for 80 % power at alpha = 0.05
@@ -666,24 +669,19 @@ def _row_groups(lin: Linearised, paths: bool = False) -> np.ndarray:
     return groups
 
 
-def _fold_of_rows(lin: Linearised, stretches: int | None = FOLDS * STRETCHES_PER_FOLD,
-                  paths: bool = False) -> np.ndarray:
-    """(N,) the fold of every data row (-1: prior rows, in every training set): the recording
-    cut into ``stretches`` contiguous stretches of time (each rest and each motion whole in
-    one), dealt to the ``FOLDS`` folds in turn; ``None``: single rests and motions dealt out
-    (``paths``: with their attitude-path rows, ``_row_groups``)."""
-    groups = _row_groups(lin, paths)
+def _stretch_of_rows(lin: Linearised, stretches: int = STRETCHES) -> np.ndarray:
+    """(N,) the stretch of every data row (-1: prior rows, in every training set): the recording
+    cut into ``stretches`` contiguous stretches of time, each rest and each motion whole in one."""
+    groups = _row_groups(lin)
     used = groups >= 0
-    if stretches is None:
-        return np.where(used, (groups * 7919) % FOLDS, -1)
     t_group = np.bincount(groups[used], lin.rows.t[used]) / np.maximum(np.bincount(groups[used]), 1)
     present = np.bincount(groups[used]) > 0
     rank = np.full(len(t_group), -1)
     order = np.flatnonzero(present)[np.argsort(t_group[present], kind="stable")]
     rank[order] = np.arange(len(order))
-    fold = np.full(len(lin.r), -1)
-    fold[used] = (rank[groups[used]] * stretches // max(len(order), 1)) % FOLDS
-    return fold
+    stretch = np.full(len(lin.r), -1)
+    stretch[used] = rank[groups[used]] * stretches // max(len(order), 1)
+    return stretch
 
 
 def _refit_predict(lin: Linearised, X: np.ndarray, k_base: int, train: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -708,42 +706,58 @@ def _refit_predict(lin: Linearised, X: np.ndarray, k_base: int, train: np.ndarra
 def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]
             ) -> tuple[float, float, float]:
     """Blocked cross-validated RMS (sensor units) of the finding's sensor rows without and with
-    its term (others already accepted are in both), and the paired z-score of the improvement
-    (``_sensor_rms``). Each fold holds ``STRETCHES_PER_FOLD`` contiguous stretches of time (whole
-    rests and motions) spread over the recording; for each fold the calibration, every nuisance
-    (bias walks, gravity directions, attitude paths) and the terms are refitted without it (one
-    linearised step) and its rows predicted. A bias walk fitted to the rows it is judged on would
-    pass for any slow term there, and it bridges single held-out rests as well as the term does;
-    one stretch per fold would leave some fold without the only motions that fix a calibration
-    parameter. A motion term is held out by single rests and motions (``_heldout_projected``):
-    only its motion's own attitude path could copy it, and a held-out motion is whole."""
+    its term (others already accepted are in both), and the z-score of the improvement: the
+    paired z over the stretches of the predictive chi2's decrease (``_predictive_gain``). Each
+    of ``STRETCHES`` contiguous stretches of time (whole rests and motions) is held out in turn:
+    the calibration, every nuisance (bias walks, gravity directions, attitude paths) and the terms
+    are refitted without it (one linearised step) and its rows predicted. A bias walk fitted to
+    the rows it is judged on would pass for any slow term there, and it bridges single held-out
+    rests as well as the term does. A motion term is held out by single rests and motions
+    (``_heldout_projected``): only its motion's own attitude path could copy it, and a held-out
+    motion is whole."""
     if finding.tested.candidate.regime == "motion":
         return _heldout_projected(lin, rp, finding, others)
-    fold = _fold_of_rows(lin)
+    stretch = _stretch_of_rows(lin)
     X = np.hstack([f.tested.candidate.columns for f in others] + [finding.tested.candidate.columns])
     k_base = X.shape[1] - finding.tested.candidate.columns.shape[1]
     before, after = np.zeros_like(rp), np.zeros_like(rp)
+    gains = []
     try:
-        for k in range(FOLDS):
-            test = fold == k
+        whole = _refit_predict(lin, X, k_base, np.ones(len(rp), bool))
+        for k in range(STRETCHES):
+            test = stretch == k
             if not test.any():
                 continue
             b, a = _refit_predict(lin, X, k_base, ~test)
             if not (np.all(np.isfinite(b[test])) and np.all(np.isfinite(a[test]))):
-                raise SolverError("a fold leaves a nuisance undetermined")
+                raise SolverError("a stretch leaves a nuisance undetermined")
             before[test], after[test] = b[test], a[test]
-    except (np.linalg.LinAlgError, SolverError):  # a fold whose removal leaves a nuisance free
+            gains.append(_predictive_gain(whole, (b, a), ~test))
+    except (np.linalg.LinAlgError, SolverError):  # a stretch whose removal leaves a nuisance free
         return _heldout_projected(lin, rp, finding, others)
-    return _sensor_rms(lin, finding, before, after)
+    return _sensor_rms(lin, finding, before, after, np.array(gains))
 
 
-def _sensor_rms(lin: Linearised, finding: Finding, before: np.ndarray, after: np.ndarray
-                ) -> tuple[float, float, float]:
+def _predictive_gain(whole: tuple[np.ndarray, np.ndarray], held: tuple[np.ndarray, np.ndarray],
+                     train: np.ndarray) -> float:
+    """How much more the term predicts a held-out stretch: the stretch's predictive chi2 without
+    the term less with it. A stretch's predictive chi2 is what it adds to the fitted chi2
+    (``whole``: the residuals without and with the term fitted to every row; ``held``: fitted
+    to the ``train`` rows). For the linearised model that is its residual judged by its whole
+    predictive covariance: the measurement noise, the calibration's uncertainty and a walk's
+    across the gap."""
+    added = [float(w @ w - h[train] @ h[train]) for w, h in zip(whole, held)]
+    return added[0] - added[1]
+
+
+def _sensor_rms(lin: Linearised, finding: Finding, before: np.ndarray, after: np.ndarray,
+                gains: np.ndarray | None = None) -> tuple[float, float, float]:
     """Held-out RMS of the finding's sensor rows without and with the term (``WHITENED``: of
-    every row it reaches, whitened), and the z-score of the improvement: the whitened squared
-    error's decrease (the model's own weights: a precise rest mean counts for more than a noisy
-    motion sample) summed per rest and per motion, its mean over them against its standard
-    error (paired; positive: the term predicts better)."""
+    every row it reaches, whitened), and the z-score of the improvement: the mean over the
+    held-out units of ``gains`` (each one's decrease of predictive chi2) against its standard
+    error; without ``gains``, of the whitened squared error's decrease (the model's own weights:
+    a precise rest mean counts for more than a noisy motion sample) summed per rest and per
+    motion (paired; positive: the term predicts better)."""
     sensor = finding.tested.candidate.heldout_sensor or finding.tested.candidate.sensor
     rows = np.any(finding.tested.candidate.columns != 0, axis=1)
     if sensor == WHITENED:
@@ -758,25 +772,47 @@ def _sensor_rms(lin: Linearised, finding: Finding, before: np.ndarray, after: np
     if not used.any():
         return float("nan"), float("nan"), float("nan")
     rms = lambda e: float(np.sqrt(np.mean(e[used] ** 2)))  # noqa: E731
-    ids, where = np.unique(group[used], return_inverse=True)
-    d = np.bincount(where, (w0[used] ** 2 - w1[used] ** 2).sum(axis=1))
+    if gains is None:
+        _, where = np.unique(group[used], return_inverse=True)
+        gains = np.bincount(where, (w0[used] ** 2 - w1[used] ** 2).sum(axis=1))
+    return rms(e0), rms(e1), _paired_z(gains)
+
+
+def _paired_z(d: np.ndarray) -> float:
     sd = float(np.std(d, ddof=1)) if len(d) > 1 else 0.0
-    z = float(np.mean(d) / (sd / np.sqrt(len(d)))) if sd > 0 else 0.0
-    return rms(e0), rms(e1), z
+    return float(np.mean(d) / (sd / np.sqrt(len(d)))) if sd > 0 else 0.0
 
 
 def _heldout_projected(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]
                        ) -> tuple[float, float, float]:
-    """Single rests and motions dealt to the folds, the projected columns fitted to the nominal
-    model's residual: a motion term (only the motion's own attitude path could copy it, and a
-    held-out motion is whole), and the fallback."""
-    fold = _fold_of_rows(lin, None, paths=finding.tested.candidate.heldout_sensor == WHITENED)
+    """Each rest and each motion (with its attitude-path rows) predicted by the projected columns
+    fitted to every other one, the nominal model's residual their target: a motion term (only
+    the motion's own attitude path could copy it, and a held-out motion is whole), and the
+    fallback. Every row of a rest or motion is judged, not only those the term acts on: the
+    projection moves its evidence to the rows the nuisances share (the attitude path's)."""
+    group = _row_groups(lin, paths=True)
+    used = group >= 0
+    _, g = np.unique(group[used], return_inverse=True)
     base = np.hstack([f.tested.projected for f in others]) if others else np.zeros((len(rp), 0))
     full = np.hstack([base, finding.tested.projected])
     before, after = np.zeros_like(rp), np.zeros_like(rp)
-    for k in range(FOLDS):
-        train, test = (fold != k) & (fold >= 0), fold == k
-        for X, out in ((base, before), (full, after)):
-            theta = np.linalg.lstsq(X[train], rp[train], rcond=None)[0] if X.shape[1] else np.zeros(0)
-            out[test] = rp[test] - X[test] @ theta
-    return _sensor_rms(lin, finding, before, after)
+    (chi_b, before[used]), (chi_a, after[used]) = (_leave_one_out(X[used], rp[used], g) for X in (base, full))
+    return _sensor_rms(lin, finding, before, after, chi_b - chi_a)
+
+
+def _leave_one_out(X: np.ndarray, r: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least squares of ``r`` on ``X`` with each group of rows (``g``: 0..G-1) left out in turn,
+    in closed form: the group's predictive chi2 ``e_g' (I - H_gg)^-1 e_g`` (G,) and its residual
+    predicted by the others' fit ``(I - H_gg)^-1 e_g`` (n,), from the fit to all (``e``,
+    ``H = X (X'X)^-1 X'``) by Woodbury: ``(I - H_gg)^-1 = I + X_g (X'X - X_g'X_g)^-1 X_g'``."""
+    G, k = int(g.max()) + 1, X.shape[1]
+    if not k:
+        return np.bincount(g, r * r, G), r.copy()
+    e = r - X @ np.linalg.lstsq(X, r, rcond=None)[0]
+    B_g = np.empty((G, k, k))
+    for i in range(k):
+        for j in range(i, k):
+            B_g[:, i, j] = B_g[:, j, i] = np.bincount(g, X[:, i] * X[:, j], G)
+    s = np.column_stack([np.bincount(g, X[:, i] * e, G) for i in range(k)])
+    u = np.einsum("gkl,gl->gk", np.linalg.pinv(B_g.sum(0) - B_g, hermitian=True), s)
+    return np.bincount(g, e * e, G) + np.einsum("gk,gk->g", s, u), e + np.einsum("nk,nk->n", X, u[g])

@@ -14,7 +14,8 @@ from forward_synth import G, joint_model, noise_free_imu, rests_from_truth, smal
 
 from imupipe.diagnosis.forward import MotionAccel
 from imupipe.diagnosis.linearised import fit
-from imupipe.diagnosis.select import FOLDS, _fold_of_rows, candidates, examine, rigid_walks, select
+from imupipe.diagnosis.select import (STRETCHES, _leave_one_out, _stretch_of_rows, candidates, examine, rigid_walks,
+                                      select)
 from imupipe.models import T_REF_C
 from imupipe.sim.api import known_effects, simulate_arrays
 from imupipe.sim.sensor import first_order_lag
@@ -53,21 +54,35 @@ def test_a_terms_column_is_what_the_term_does_to_every_row(fitted, effect):
     assert 0 <= t.visible <= 1 and t.mde > 0
 
 
-def test_held_out_folds_are_whole_rests_and_motions_in_stretches_spread_over_the_recording(fitted):
+def test_held_out_stretches_are_whole_rests_and_motions_contiguous_in_time(fitted):
     lin = fitted[-1]
-    fold = _fold_of_rows(lin)
-    data = fold >= 0
+    stretch = _stretch_of_rows(lin)
+    data = stretch >= 0
     assert not data[lin.rows.of("walk_gyro") | lin.rows.of("walk_accel") | lin.rows.of("turn")].any()
-    for block in ("accel_rest", "accel_motion"):  # one fold per rest / per motion
+    for block in ("accel_rest", "accel_motion"):  # one stretch per rest / per motion
         rows = lin.rows.of(block)
         unit = lin.rows.index[rows] if block == "accel_rest" else lin.model.accel.motion[lin.rows.index[rows]]
         for i in np.unique(unit):
-            assert len(np.unique(fold[rows][unit == i])) == 1
+            assert len(np.unique(stretch[rows][unit == i])) == 1
     rest = lin.rows.of("accel_rest")
-    assert np.array_equal(fold[rest], fold[lin.rows.of("gyro_rest")])  # a rest's two triads together
+    assert np.array_equal(stretch[rest], stretch[lin.rows.of("gyro_rest")])  # a rest's two triads together
     order = np.argsort(lin.rows.t[rest], kind="stable")
-    runs = 1 + np.count_nonzero(np.diff(fold[rest][order]))
-    assert sorted(set(fold[data])) == list(range(FOLDS)) and runs >= FOLDS * 2  # folds recur in time
+    assert np.all(np.diff(stretch[rest][order]) >= 0)  # contiguous in time
+    assert len(np.unique(stretch[data])) == min(STRETCHES, lin.model.n)
+
+
+def test_leave_one_out_in_closed_form_is_the_refit_without_the_group():
+    rng = np.random.default_rng(3)
+    X, r, g = rng.normal(size=(60, 3)), rng.normal(size=60), np.repeat(np.arange(6), 10)
+    chi, predicted = _leave_one_out(X, r, g)
+    for k in range(6):
+        test = g == k
+        theta = np.linalg.lstsq(X[~test], r[~test], rcond=None)[0]
+        e = r[test] - X[test] @ theta
+        assert np.allclose(predicted[test], e)
+        full = r - X @ np.linalg.lstsq(X, r, rcond=None)[0]
+        without = r[~test] - X[~test] @ theta
+        assert np.isclose(chi[k], full @ full - without @ without)  # what the group adds to chi2
 
 
 def test_a_thermal_lags_column_is_what_the_lagged_read_out_does_to_every_row():
