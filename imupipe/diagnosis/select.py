@@ -25,11 +25,11 @@ the nuisances' Jacobian, through the fit's own block-tridiagonal system), so
   calibration, every nuisance and the term are refitted without a stretch (one linearised
   step) and its residual RMS in the sensor's units is compared without and with the term.
   Refitting the nuisances matters: a bias walk already fitted to the rows it is judged on
-  copies any slow term there. The proof is the paired z-score over the stretches of the
-  predictive chi2's decrease (``_predictive_gain``): what the stretch adds to the fit's
-  chi2 with and without the term, which judges each prediction by its own uncertainty (a
+  copies any slow term there. The proof is the z-score of the predictive chi2's decrease
+  summed over the stretches (``_predictive_gain``: what a stretch adds to the fit's chi2,
+  without the term less with it), which judges each prediction by its own uncertainty (a
   walk bridging a held-out stretch is uncertain there; its squared error alone would
-  drown the term). A motion term is held out by single rests and motions, leave-one-out
+  drown the term), against its standard error (``_gain_z``). A motion term is held out by single rests and motions, leave-one-out
   in closed form (``_leave_one_out``).
 
 A p-value is the larger of the asymptotic (chi-square) one and a wild bootstrap's over 5-s
@@ -684,30 +684,35 @@ def _stretch_of_rows(lin: Linearised, stretches: int = STRETCHES) -> np.ndarray:
     return stretch
 
 
-def _refit_predict(lin: Linearised, X: np.ndarray, k_base: int, train: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _refit_predict(lin: Linearised, X: np.ndarray, k_base: int, train: np.ndarray,
+                   targets: tuple[np.ndarray, ...] = ()) -> list[tuple[np.ndarray, np.ndarray]]:
     """The residual on every row after a Gauss-Newton refit of the globals, every nuisance and the
     term columns ``X`` (N, k) to the ``train`` rows (the priors always count): without the last
-    ``k - k_base`` columns and with them. One factorisation of the nuisances' system serves both."""
+    ``k - k_base`` columns and with them; for the fit's residual and then each of ``targets``
+    (residual vectors refitted the same way). One factorisation of the system serves all."""
     w = train.astype(float)
     Jg = np.hstack([lin.J_g, X]) * w[:, None]
     Jl = (sp.diags(w) @ lin.J_l).tocsr()
     system = Bordered(Jg, Jl, lin.model.stages.offsets)
-    rw = lin.r * w
-    g_g, g_l = -(Jg.T @ rw), -np.asarray(Jl.T @ rw)
-    y = system.blocks.solve(g_l)
     out = []
-    for P in (lin.J_g.shape[1] + k_base, Jg.shape[1]):
-        x_g = np.linalg.solve(system.S[:P, :P], g_g[:P] - system.A_lg[:, :P].T @ y)
-        x_l = y - system.X[:, :P] @ x_g
-        out.append(lin.r + np.hstack([lin.J_g, X])[:, :P] @ x_g + lin.J_l @ x_l)
-    return out[0], out[1]
+    for r in (lin.r, *targets):
+        rw = r * w
+        g_g, g_l = -(Jg.T @ rw), -np.asarray(Jl.T @ rw)
+        y = system.blocks.solve(g_l)
+        pair = []
+        for P in (lin.J_g.shape[1] + k_base, Jg.shape[1]):
+            x_g = np.linalg.solve(system.S[:P, :P], g_g[:P] - system.A_lg[:, :P].T @ y)
+            x_l = y - system.X[:, :P] @ x_g
+            pair.append(r + np.hstack([lin.J_g, X])[:, :P] @ x_g + lin.J_l @ x_l)
+        out.append((pair[0], pair[1]))
+    return out
 
 
 def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]
             ) -> tuple[float, float, float]:
     """Blocked cross-validated RMS (sensor units) of the finding's sensor rows without and with
     its term (others already accepted are in both), and the z-score of the improvement: the
-    paired z over the stretches of the predictive chi2's decrease (``_predictive_gain``). Each
+    predictive chi2's decrease over the stretches (``_predictive_gain``, ``_gain_z``). Each
     of ``STRETCHES`` contiguous stretches of time (whole rests and motions) is held out in turn:
     the calibration, every nuisance (bias walks, gravity directions, attitude paths) and the terms
     are refitted without it (one linearised step) and its rows predicted. A bias walk fitted to
@@ -720,22 +725,24 @@ def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Find
     stretch = _stretch_of_rows(lin)
     X = np.hstack([f.tested.candidate.columns for f in others] + [finding.tested.candidate.columns])
     k_base = X.shape[1] - finding.tested.candidate.columns.shape[1]
+    signal = finding.tested.candidate.columns @ finding.theta  # the term as fitted to every row
     before, after = np.zeros_like(rp), np.zeros_like(rp)
-    gains = []
+    gains, expected = [], []
     try:
-        whole = _refit_predict(lin, X, k_base, np.ones(len(rp), bool))
+        whole, whole_signal = _refit_predict(lin, X, k_base, np.ones(len(rp), bool), (signal,))
         for k in range(STRETCHES):
             test = stretch == k
             if not test.any():
                 continue
-            b, a = _refit_predict(lin, X, k_base, ~test)
+            (b, a), held_signal = _refit_predict(lin, X, k_base, ~test, (signal,))
             if not (np.all(np.isfinite(b[test])) and np.all(np.isfinite(a[test]))):
                 raise SolverError("a stretch leaves a nuisance undetermined")
             before[test], after[test] = b[test], a[test]
             gains.append(_predictive_gain(whole, (b, a), ~test))
+            expected.append(_predictive_gain(whole_signal, held_signal, ~test))
     except (np.linalg.LinAlgError, SolverError):  # a stretch whose removal leaves a nuisance free
         return _heldout_projected(lin, rp, finding, others)
-    return _sensor_rms(lin, finding, before, after, np.array(gains))
+    return _sensor_rms(lin, finding, before, after, _gain_z(np.array(gains), np.array(expected)))
 
 
 def _predictive_gain(whole: tuple[np.ndarray, np.ndarray], held: tuple[np.ndarray, np.ndarray],
@@ -750,14 +757,32 @@ def _predictive_gain(whole: tuple[np.ndarray, np.ndarray], held: tuple[np.ndarra
     return added[0] - added[1]
 
 
+def _gain_z(gains: np.ndarray, expected: np.ndarray) -> float:
+    """z-score of the held-out units' predictive chi2 decrease ``gains``: their sum against its
+    standard error. ``expected`` is each unit's decrease were the data the fitted term alone
+    (noise-free: its evidence ``q``); a unit's gain is ``q`` plus noise of variance ``4 q``
+    under the model, the scale inflated by how much the units scatter beyond that. Some units
+    carry most of a term's evidence (the turntable's turns, the rests that see Earth's rate):
+    a t-test over the units would count that spread of the signal as noise. An inflation
+    estimated from the units makes the ratio Student's t (units - 1 dof), returned as the
+    normal score of the same one-sided p."""
+    q = float(expected.sum())
+    if q <= 0:
+        return 0.0
+    inflation = float(np.sum((gains - expected) ** 2)) / (4 * q)
+    t = float(gains.sum() / (2 * np.sqrt(max(inflation, 1.0) * q)))
+    if inflation <= 1.0 or len(gains) < 2:
+        return t
+    return float(stats.norm.isf(stats.t.sf(t, len(gains) - 1)))
+
+
 def _sensor_rms(lin: Linearised, finding: Finding, before: np.ndarray, after: np.ndarray,
-                gains: np.ndarray | None = None) -> tuple[float, float, float]:
+                z: float | None = None) -> tuple[float, float, float]:
     """Held-out RMS of the finding's sensor rows without and with the term (``WHITENED``: of
-    every row it reaches, whitened), and the z-score of the improvement: the mean over the
-    held-out units of ``gains`` (each one's decrease of predictive chi2) against its standard
-    error; without ``gains``, of the whitened squared error's decrease (the model's own weights:
-    a precise rest mean counts for more than a noisy motion sample) summed per rest and per
-    motion (paired; positive: the term predicts better)."""
+    every row it reaches, whitened), and ``z``; without it, the z-score of the whitened squared
+    error's decrease (the model's own weights: a precise rest mean counts for more than a noisy
+    motion sample) summed per rest and per motion, its mean over them against its standard
+    error (paired; positive: the term predicts better)."""
     sensor = finding.tested.candidate.heldout_sensor or finding.tested.candidate.sensor
     rows = np.any(finding.tested.candidate.columns != 0, axis=1)
     if sensor == WHITENED:
@@ -772,15 +797,12 @@ def _sensor_rms(lin: Linearised, finding: Finding, before: np.ndarray, after: np
     if not used.any():
         return float("nan"), float("nan"), float("nan")
     rms = lambda e: float(np.sqrt(np.mean(e[used] ** 2)))  # noqa: E731
-    if gains is None:
+    if z is None:
         _, where = np.unique(group[used], return_inverse=True)
-        gains = np.bincount(where, (w0[used] ** 2 - w1[used] ** 2).sum(axis=1))
-    return rms(e0), rms(e1), _paired_z(gains)
-
-
-def _paired_z(d: np.ndarray) -> float:
-    sd = float(np.std(d, ddof=1)) if len(d) > 1 else 0.0
-    return float(np.mean(d) / (sd / np.sqrt(len(d)))) if sd > 0 else 0.0
+        d = np.bincount(where, (w0[used] ** 2 - w1[used] ** 2).sum(axis=1))
+        sd = float(np.std(d, ddof=1)) if len(d) > 1 else 0.0
+        z = float(np.mean(d) / (sd / np.sqrt(len(d)))) if sd > 0 else 0.0
+    return rms(e0), rms(e1), z
 
 
 def _heldout_projected(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]
@@ -797,7 +819,9 @@ def _heldout_projected(lin: Linearised, rp: np.ndarray, finding: Finding, others
     full = np.hstack([base, finding.tested.projected])
     before, after = np.zeros_like(rp), np.zeros_like(rp)
     (chi_b, before[used]), (chi_a, after[used]) = (_leave_one_out(X[used], rp[used], g) for X in (base, full))
-    return _sensor_rms(lin, finding, before, after, chi_b - chi_a)
+    signal = (finding.tested.projected @ finding.theta)[used]  # the term as fitted to every row
+    (sig_b, _), (sig_a, _) = (_leave_one_out(X[used], signal, g) for X in (base, full))
+    return _sensor_rms(lin, finding, before, after, _gain_z(chi_b - chi_a, sig_b - sig_a))
 
 
 def _leave_one_out(X: np.ndarray, r: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
