@@ -4,8 +4,9 @@
 significant ones with their fitted parameters, held-out RMS before and after and an
 explanation; a cell of the residual map that stays flagged and that no accepted term's
 sensor and regime covers becomes an ``unknown`` finding that says what it correlates with.
-A significant term whose held-out RMS does not improve significantly (paired z below
-``HELDOUT_Z``) is not a finding (``not_confirmed``).
+A significant term that does not predict held-out data significantly better (the z of the
+predictive chi2's decrease below ``HELDOUT_Z``, or a held-out RMS that grows) is not a
+finding (``not_confirmed``).
 
 A session's findings come from three families of tests: the catalogue's forward selection,
 the structure cells left after the accepted terms, and the map's chi2/dof cells. ``q`` is
@@ -70,7 +71,7 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
                       f"bootstrap over {BLOCK_S:g}-s time blocks, {BOOT_DRAWS} draws), "
                       "Benjamini-Hochberg forward selection with a backward check, held-out proof by "
                       "blocked cross-validation (stretches of time, or rests and motions, each held out in "
-                      "turn; the paired z of the predictive chi2's decrease); q split among the catalogue, the structure "
+                      "turn; the z of the predictive chi2's decrease); q split among the catalogue, the structure "
                       "cells and the map's cells (Bonferroni across, Benjamini-Hochberg within)"}
 
 
@@ -92,7 +93,7 @@ def catalogue_findings(lin, tested: list, effects: dict, q: float = Q_FDR, held_
             not_confirmed.append({"effect": doc["effect"], "sensor": doc["sensor"], "regime": doc["regime"],
                                   "parameters": doc["parameters"], "significance": doc["significance"],
                                   "reason": unphysical or
-                                  f"held-out RMS did not improve significantly ({doc['heldout_rms_before']:.4g} "
+                                  f"held-out prediction did not improve significantly (RMS {doc['heldout_rms_before']:.4g} "
                                   f"-> {doc['heldout_rms_after']:.4g}, z = {doc['heldout_z']:.2f} < {HELDOUT_Z})"})
     return rp, findings, not_confirmed, kept
 
@@ -225,24 +226,36 @@ def _partial(doc: dict, larger: str) -> dict:
 def _unknown(cell: dict) -> dict:
     """From a flagged chi2/dof cell of the map."""
     var, (lo, hi) = cell["variable"], cell["range"]
+    where = ("" if lo is None and hi is None else f"with {var} {lo} " if isinstance(lo, str)
+             else f"with {var} in [{_edge(lo, '-inf')}, {_edge(hi, 'inf')}] ")
     return _unknown_finding(
         cell["sensor"], cell["axes"], cell["regime"], cell.get("windows", []), {}, cell["chi2"], cell["p_value"],
         f"The {cell['sensor']} {'/'.join(cell['axes'])} residuals in the {cell['regime']} rows "
-        f"with {var} in [{lo}, {hi}] have chi2/dof {cell['chi2_per_dof']:.2f} and no catalogue "
+        f"{where}have chi2/dof {cell['chi2_per_dof']:.2f} and no catalogue "
         "term explains them: look at those windows (an unmodelled disturbance, a knock, a "
         "vibrating support or physics outside the catalogue).")
 
 
+def _edge(x: float | None, infinite: str) -> str:
+    return infinite if x is None else f"{x:.3g}"
+
+
 def _structure(cell) -> dict:
     """From a structure cell still significant given the accepted terms."""
-    follows = "; ".join(f"{t['signal']} on {t['output_axis']} ({t['coefficient']:.3g} {t['unit']}, t = {t['t']:.1f})"
-                        for t in cell.terms)
+    stable = (f"a sparse fit stable over half-samples of the recording keeps {_in_words(cell.stable)}"
+              if cell.stable else "no signal is stable over half-samples of the recording")
     return _unknown_finding(
-        cell.sensor, cell.axes, cell.regime, cell.windows, {"follows": cell.terms}, cell.chi2, cell.p_value,
+        cell.sensor, cell.axes, cell.regime, cell.windows, {"follows": cell.terms, "stable": cell.stable},
+        cell.chi2, cell.p_value,
         f"The {cell.sensor} {'/'.join(cell.axes)} residuals in the {cell.regime} rows follow "
         f"signals the model already reconstructs (score chi2 {cell.chi2:.1f} on {cell.dof:g} "
         f"directions, p = {cell.p_value:.2g}) and no accepted catalogue term explains it; "
-        f"strongest: {follows}.")
+        f"strongest alone: {_in_words(cell.terms)}; {stable}.")
+
+
+def _in_words(terms: list[dict]) -> str:
+    return "; ".join(f"{t['signal']} on {t['output_axis']} ({t['coefficient']:.3g} {t['unit']}, t = {t['t']:.1f}"
+                     + (f", chosen in {t['chosen']:.0%}" if "chosen" in t else "") + ")" for t in terms)
 
 
 def _json(v):

@@ -18,7 +18,11 @@ dropped, and the score statistic ``r' P_L r`` (the walks free) is chi-square wit
 directions' count under the null. Its noncentrality is what a fitted
 term would remove, so a structure cell sees an effect near the catalogue tests'
 detection limit, names its sensor, axis and regime, and says which signals it follows
-(the library terms with the largest t) -- the catalogue is not consulted.
+(the library terms with the largest t) -- the catalogue is not consulted. With the wild
+bootstrap's block scores (the diagnosis), a cell also says which signals a sparse fit keeps
+consistently (``_stable_terms``: noise-calibrated forward selection on random halves of the
+recording, stability selection): the marginal t's of correlated signals (f_x^2 and f_y^2
+at rest, whose sum is g^2) name several where one acts.
 """
 
 from __future__ import annotations
@@ -38,6 +42,8 @@ AXES = ("x", "y", "z")
 WARMUP_TAU_S = 120.0
 CHUNK = 8192  # readings whose library columns are formed at once
 INFO_MIN = 1e-6  # a direction with less of its information left than this is not tested (numerically nil)
+STABLE_HALVES = 100  # random halves of the time blocks in the stability selection
+STABLE_MIN = 0.6  # share of the halves whose sparse fit must choose a signal for it to be stable
 _PAIRS = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]
 
 
@@ -58,6 +64,7 @@ class StructureCell:
     lo: float = -np.inf
     hi: float = np.inf
     p_bootstrap: float = 0.0  # the wild bootstrap's p (``structure_cells(bootstrap=True)``), else 0
+    stable: list[dict] = field(default_factory=list)  # ``_stable_terms`` (with the bootstrap's block scores)
 
     @property
     def chi2_per_dof(self) -> float:
@@ -322,16 +329,63 @@ def _score(lib: _Library, axes, sel, gram, visible, proj, h, scale, unit, g_b=No
     t = np.where(shown, hn / np.sqrt(np.where(shown, bjj, 1.0)), 0.0)
     terms = []
     for j in [j for j in np.argsort(-np.abs(t)) if shown[j]][:3]:
-        i, name, ru, _ = lib.columns[idx[j]]
-        coef = -h[idx[j]] / (bjj[j] * d[j] ** 2)
-        terms.append({"output_axis": AXES[i], "signal": name, "coefficient": float(coef),
-                      "unit": f"{unit} per {ru}", "t": float(t[j])})
-    p_boot = 0.0
+        terms.append(_term(lib, idx[j], -h[idx[j]] / (bjj[j] * d[j] ** 2), t[j], unit))
+    p_boot, stable = 0.0, []
     if g_b is not None:
         M = D / d[:, None]  # the tested directions in raw column coordinates
         p_boot = block_wild_p(g_b[:, idx] @ M, M.T @ proj[np.ix_(idx, idx)] @ M, draws)
+        sub = np.flatnonzero(shown)
+        stable = [{**_term(lib, idx[sub[j]], coef / d[sub[j]], t, unit), "chosen": share}
+                  for j, coef, t, share in _stable_terms(B[np.ix_(sub, sub)], hn[sub], g_b[:, idx[sub]] / d[sub])]
     return StructureCell(lib.sensor, axes, lib.regime, stat / scale, float(good.sum()), [], terms,
-                         p_bootstrap=p_boot), w
+                         p_bootstrap=p_boot, stable=stable), w
+
+
+def _term(lib: _Library, column: int, coefficient: float, t: float, unit: str) -> dict:
+    i, name, ru, _ = lib.columns[column]
+    return {"output_axis": AXES[i], "signal": name, "coefficient": float(coefficient), "unit": f"{unit} per {ru}",
+            "t": float(t)}
+
+
+def _sparse(B: np.ndarray, h: np.ndarray, t2_min: float) -> list[int]:
+    """Forward selection of library columns from their projected information ``B`` and score
+    ``h`` (normalised columns): each step adds the column whose score, conditional on those
+    chosen, has the largest t^2, while that exceeds ``t2_min``. The whitened score's noise is
+    N(0, B), so the threshold is calibrated by the noise itself."""
+    chosen: list[int] = []
+    while len(chosen) < len(h):
+        P = np.linalg.solve(B[np.ix_(chosen, chosen)], B[chosen]).T if chosen else np.zeros((len(h), 0))
+        hc, bc = h - P @ h[chosen], np.diag(B) - np.sum(P * B[:, chosen], axis=1)
+        t2 = np.where(bc > INFO_MIN, hc ** 2 / np.maximum(bc, INFO_MIN), 0.0)
+        t2[chosen] = 0.0
+        j = int(np.argmax(t2))
+        if t2[j] <= t2_min:
+            break
+        chosen.append(j)
+    return chosen
+
+
+def _stable_terms(B: np.ndarray, h: np.ndarray, g_b: np.ndarray) -> list[tuple[int, float, float, float]]:
+    """Stability selection (Meinshausen and Buehlmann): ``_sparse`` (Bonferroni over the columns
+    at ``Q_FDR``) on ``STABLE_HALVES`` random halves of the time blocks (``g_b`` (G, m): each
+    block's score; a half has about half the information), and the columns chosen in at least
+    ``STABLE_MIN`` of them, most often chosen first: ``(column, coefficient, t, share)`` with
+    the coefficient (normalised column) and t of their joint fit to all the data."""
+    t2_min = float(chi2_dist.isf(Q_FDR / len(h), 1))
+    rng = np.random.default_rng(0)
+    counts = np.zeros(len(h))
+    for _ in range(STABLE_HALVES):
+        half = rng.permutation(len(g_b))[:len(g_b) // 2]
+        counts[_sparse(B / 2, g_b[half].sum(0), t2_min)] += 1
+    share = counts / STABLE_HALVES
+    keep = np.flatnonzero(share >= STABLE_MIN)
+    keep = keep[np.argsort(-share[keep], kind="stable")]
+    if not len(keep):
+        return []
+    cov = np.linalg.pinv(B[np.ix_(keep, keep)])
+    score = cov @ h[keep]
+    t = score / np.sqrt(np.maximum(np.diag(cov), INFO_MIN))
+    return [(int(j), float(-score[n]), float(t[n]), float(share[j])) for n, j in enumerate(keep)]
 
 
 def _with_windows(lin: Linearised, lib: _Library, scored: list) -> list[StructureCell]:

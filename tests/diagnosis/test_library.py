@@ -85,3 +85,24 @@ def test_the_gyro_signals_reach_the_motions_as_the_exact_column_does(fitted):
             assert np.linalg.norm(C[motion, c] - exact[motion]) <= tol * np.linalg.norm(exact[motion])
             checked.add((lib.regime, name))
     assert {name for _, name in checked} == set(signals) and ("motion", "|x_x|") in checked
+
+
+def test_stability_selection_keeps_the_acting_signal_and_not_its_correlated_neighbours():
+    """Block scores of six library columns, two of them (0, 3) acting; column 1 is 0.8
+    correlated with column 0 (its marginal t is large too). The stable set is the acting two."""
+    rng = np.random.default_rng(5)
+    G, rows = 200, 50
+    X = rng.normal(size=(G * rows, 6))
+    X[:, 1] = 0.8 * X[:, 0] + 0.6 * X[:, 1]
+    X /= np.linalg.norm(X, axis=0)
+    truth = np.array([6.0, 0, 0, -5.0, 0, 0])
+    r = X @ truth + rng.normal(size=len(X))
+    g_b = (X * r[:, None]).reshape(G, rows, 6).sum(1)
+    B = X.T @ X
+    assert abs(g_b.sum(0)[1] / np.sqrt(B[1, 1])) > 3  # the neighbour alone looks significant
+    stable = library._stable_terms(B, g_b.sum(0), g_b)
+    assert sorted(j for j, *_ in stable) == [0, 3]
+    for j, coefficient, t, share in stable:  # the coefficient is the term's (the residual's opposite)
+        assert share >= library.STABLE_MIN and abs(-coefficient - truth[j]) < 3 and abs(t) > 4
+    noise = (X * rng.normal(size=len(X))[:, None]).reshape(G, rows, 6).sum(1)
+    assert library._stable_terms(B, noise.sum(0), noise) == []  # noise alone: nothing stable
