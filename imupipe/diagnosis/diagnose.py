@@ -93,8 +93,9 @@ def catalogue_findings(lin, tested: list, effects: dict, q: float = Q_FDR, held_
             not_confirmed.append({"effect": doc["effect"], "sensor": doc["sensor"], "regime": doc["regime"],
                                   "parameters": doc["parameters"], "significance": doc["significance"],
                                   "reason": unphysical or
-                                  f"held-out prediction did not improve significantly (RMS {doc['heldout_rms_before']:.4g} "
-                                  f"-> {doc['heldout_rms_after']:.4g}, z = {doc['heldout_z']:.2f} < {HELDOUT_Z})"})
+                                  "held-out prediction did not improve significantly (RMS "
+                                  f"{doc['heldout_rms_before']:.4g} -> {doc['heldout_rms_after']:.4g}, "
+                                  f"z = {doc['heldout_z']:.2f} < {HELDOUT_Z})"})
     return rp, findings, not_confirmed, kept
 
 

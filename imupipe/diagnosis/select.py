@@ -29,8 +29,8 @@ the nuisances' Jacobian, through the fit's own block-tridiagonal system), so
   summed over the stretches (``_predictive_gain``: what a stretch adds to the fit's chi2,
   without the term less with it), which judges each prediction by its own uncertainty (a
   walk bridging a held-out stretch is uncertain there; its squared error alone would
-  drown the term), against its standard error (``_gain_z``). A motion term is held out by single rests and motions, leave-one-out
-  in closed form (``_leave_one_out``).
+  drown the term), against its standard error (``_gain_z``). A motion term is held out by
+  single rests and motions, leave-one-out in closed form (``_leave_one_out``).
 
 A p-value is the larger of the asymptotic (chi-square) one and a wild bootstrap's over 5-s
 time blocks (``wild_p``: the recording's own noise, whatever its colour, without a noise

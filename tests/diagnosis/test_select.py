@@ -14,8 +14,8 @@ from forward_synth import G, joint_model, noise_free_imu, rests_from_truth, smal
 
 from imupipe.diagnosis.forward import MotionAccel
 from imupipe.diagnosis.linearised import fit
-from imupipe.diagnosis.select import (STRETCHES, _gain_z, _leave_one_out, _stretch_of_rows, candidates, examine, rigid_walks,
-                                      select)
+from imupipe.diagnosis.select import (STRETCHES, _gain_z, _leave_one_out, _stretch_of_rows, candidates, examine,
+                                      rigid_walks, select)
 from imupipe.models import T_REF_C
 from imupipe.sim.api import known_effects, simulate_arrays
 from imupipe.sim.sensor import first_order_lag
