@@ -5,8 +5,7 @@ significant ones with their fitted parameters, held-out RMS before and after and
 explanation; a cell of the residual map that stays flagged and that no accepted term's
 sensor and regime covers becomes an ``unknown`` finding that says what it correlates with.
 A significant term that does not predict held-out data significantly better (the z of the
-predictive chi2's decrease below ``HELDOUT_Z``, or a held-out RMS that grows) is not a
-finding (``not_confirmed``).
+predictive chi2's decrease below ``HELDOUT_Z``) is not a finding (``not_confirmed``).
 
 A session's findings come from three families of tests: the catalogue's forward selection,
 the structure cells left after the accepted terms, and the map's chi2/dof cells. ``q`` is
@@ -78,15 +77,15 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
 def catalogue_findings(lin, tested: list, effects: dict, q: float = Q_FDR, held_out=heldout,
                        latitude_deg: float | None = None) -> tuple[np.ndarray, list[dict], list[dict], list[Finding]]:
     """The selected catalogue terms (``select``, with the recording's latitude when known) that
-    also predict held-out data better (``held_out(lin, rp, finding, others)``: RMS before, after,
-    z): ``(rp, findings, not_confirmed, kept)``, ``rp`` the residual with the nominal model refitted."""
+    also predict held-out data better (``held_out(lin, rp, finding, others) -> select.HeldOut``):
+    ``(rp, findings, not_confirmed, kept)``, ``rp`` the residual with the nominal model refitted."""
     rp, accepted = select(lin, tested, q, latitude_deg)
     findings, not_confirmed, kept = [], [], []
     for i, f in enumerate(accepted):
         doc = _finding(lin, rp, f, accepted[:i] + accepted[i + 1:], effects, held_out)
         rejects = f.tested.candidate.rejects
         unphysical = rejects(f.theta) if rejects else None  # e.g. a thermal lag the read-out makes
-        if not unphysical and doc["heldout_rms_after"] < doc["heldout_rms_before"] and doc["heldout_z"] >= HELDOUT_Z:
+        if not unphysical and doc["heldout_z"] >= HELDOUT_Z:
             findings.append(_partial(doc, f.beyond) if f.beyond else _ambiguous(doc, f.rivals) if f.rivals else doc)
             kept.append(f)
         else:  # significant on the data it was fitted to, not better on data it was not: not stood behind
@@ -95,7 +94,8 @@ def catalogue_findings(lin, tested: list, effects: dict, q: float = Q_FDR, held_
                                   "reason": unphysical or
                                   "held-out prediction did not improve significantly (RMS "
                                   f"{doc['heldout_rms_before']:.4g} -> {doc['heldout_rms_after']:.4g}, "
-                                  f"z = {doc['heldout_z']:.2f} < {HELDOUT_Z})"})
+                                  f"z = {doc['heldout_z']:.2f} < {HELDOUT_Z})",
+                                  **{k: doc[k] for k in ("heldout_chi2_n_before", "heldout_chi2_n_after")}})
     return rp, findings, not_confirmed, kept
 
 
@@ -140,7 +140,7 @@ def _finding(lin, rp: np.ndarray, f: Finding, others: list[Finding], effects: di
     else:
         to_params = c.to_params
     params = {k: _json(v) for k, v in to_params(f.theta).items()}
-    before, after, z = held_out(lin, rp, f, others)
+    held = held_out(lin, rp, f, others)
     contrib = (f.tested.projected @ f.theta) ** 2
     rows = np.any(c.columns != 0, axis=1)
     where = windows(lin.rows.t[rows], contrib[rows])
@@ -155,13 +155,20 @@ def _finding(lin, rp: np.ndarray, f: Finding, others: list[Finding], effects: di
         "parameters_sd": _parameter_sd(rp, f, others, to_params),
         "significance": {"statistic": f.statistic, "p_value": f.p_value, "p_value_asymptotic": f.p_asymptotic,
                          "delta_bic": f.delta_bic, "bootstrap_draws": BOOT_DRAWS},
-        "heldout_rms_before": before, "heldout_rms_after": after, "heldout_z": z,
+        "heldout_rms_before": held.rms_before, "heldout_rms_after": held.rms_after, "heldout_z": held.z,
+        "heldout_chi2_n_before": _finite(held.chi2_n_before), "heldout_chi2_n_after": _finite(held.chi2_n_after),
         "visible_fraction": f.tested.visible,
         "explanation": (f"The {c.sensor} residuals in the {c.regime} rows carry a term the nominal model "
                         f"cannot make (score chi2 {f.statistic:.1f} on {f.tested.projected.shape[1]} dof, "
-                        f"p = {f.p_value:.2g}); modelled as {words} Held-out RMS {before:.4g} -> {after:.4g} "
-                        f"(improvement z = {z:.1f})."),
+                        f"p = {f.p_value:.2g}); modelled as {words} Held out: RMS {held.rms_before:.4g} -> "
+                        f"{held.rms_after:.4g}" + (f", predictive chi2/n {held.chi2_n_before:.4f} -> "
+                                                   f"{held.chi2_n_after:.4f}" if np.isfinite(held.chi2_n_after)
+                                                   else "") + f" (improvement z = {held.z:.1f})."),
     }
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
 
 
 def _parameter_sd(rp: np.ndarray, f: Finding, others: list[Finding], to_params, draws: int = SD_DRAWS) -> dict:
@@ -198,8 +205,8 @@ def _not_stood_behind(doc: dict, candidates: list[str], explanation: str) -> dic
         doc["sensor"], doc["axes"], doc["regime"], doc["windows"],
         {"candidates": candidates, doc["effect"]: doc["parameters"]}, doc["significance"]["statistic"],
         doc["significance"]["p_value"], explanation)
-    out["heldout_rms_before"], out["heldout_rms_after"], out["heldout_z"] = (
-        doc["heldout_rms_before"], doc["heldout_rms_after"], doc["heldout_z"])
+    for key in ("heldout_rms_before", "heldout_rms_after", "heldout_z", "heldout_chi2_n_before", "heldout_chi2_n_after"):
+        out[key] = doc[key]
     return out
 
 

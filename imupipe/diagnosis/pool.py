@@ -46,7 +46,7 @@ from .diagnose import catalogue_findings, coverage
 from .evaluate import Evaluation
 from .forward import Globals, Rows
 from .linearised import Linearised
-from .select import (BLOCK_S, BOOT_DRAWS, Q_FDR, Candidate, Finding, _sensor_rms, candidates, examine, heldout,
+from .select import (BLOCK_S, BOOT_DRAWS, Q_FDR, Candidate, Finding, HeldOut, _sensor_rms, candidates, examine, heldout,
                      rigid_walks)
 
 PER_SESSION = ("b_a", "b_g")  # the turn-on bias of each power cycle: never shared
@@ -235,7 +235,7 @@ def session_heldout(parts: list[Linearised]):
     training sessions cannot determine the terms falls back to the blocked folds."""
 
     def held_out(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]
-                 ) -> tuple[float, float, float]:
+                 ) -> HeldOut:
         X = np.hstack([f.tested.candidate.columns for f in others] + [finding.tested.candidate.columns])
         k_base = X.shape[1] - finding.tested.candidate.columns.shape[1]
         before, after = np.zeros_like(rp), np.zeros_like(rp)

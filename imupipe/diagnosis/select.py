@@ -26,7 +26,7 @@ the nuisances' Jacobian, through the fit's own block-tridiagonal system), so
   step) and its residual RMS in the sensor's units is compared without and with the term.
   Refitting the nuisances matters: a bias walk already fitted to the rows it is judged on
   copies any slow term there. The proof is the z-score of the predictive chi2's decrease
-  summed over the stretches (``_predictive_gain``: what a stretch adds to the fit's chi2,
+  summed over the stretches (``_predictive_chi2``: what a stretch adds to the fit's chi2,
   without the term less with it), which judges each prediction by its own uncertainty (a
   walk bridging a held-out stretch is uncertain there; its squared error alone would
   drown the term), against its standard error (``_gain_z``). A motion term is held out by
@@ -49,6 +49,7 @@ here yet: ``UNTESTED`` lists them with the reason.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -669,6 +670,18 @@ def _row_groups(lin: Linearised, paths: bool = False) -> np.ndarray:
     return groups
 
 
+class HeldOut(NamedTuple):
+    """A finding's held-out check: RMS (sensor units) without and with its term, the z-score of
+    the improvement, and the predictive chi2 per held-out row without and with it (nan where the
+    check has none)."""
+
+    rms_before: float
+    rms_after: float
+    z: float
+    chi2_n_before: float = float("nan")
+    chi2_n_after: float = float("nan")
+
+
 def _stretch_of_rows(lin: Linearised, stretches: int = STRETCHES) -> np.ndarray:
     """(N,) the stretch of every data row (-1: prior rows, in every training set): the recording
     cut into ``stretches`` contiguous stretches of time, each rest and each motion whole in one."""
@@ -708,11 +721,10 @@ def _refit_predict(lin: Linearised, X: np.ndarray, k_base: int, train: np.ndarra
     return out
 
 
-def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]
-            ) -> tuple[float, float, float]:
+def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]) -> HeldOut:
     """Blocked cross-validated RMS (sensor units) of the finding's sensor rows without and with
     its term (others already accepted are in both), and the z-score of the improvement: the
-    predictive chi2's decrease over the stretches (``_predictive_gain``, ``_gain_z``). Each
+    predictive chi2's decrease over the stretches (``_predictive_chi2``, ``_gain_z``). Each
     of ``STRETCHES`` contiguous stretches of time (whole rests and motions) is held out in turn:
     the calibration, every nuisance (bias walks, gravity directions, attitude paths) and the terms
     are refitted without it (one linearised step) and its rows predicted. A bias walk fitted to
@@ -727,7 +739,7 @@ def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Find
     k_base = X.shape[1] - finding.tested.candidate.columns.shape[1]
     signal = finding.tested.candidate.columns @ finding.theta  # the term as fitted to every row
     before, after = np.zeros_like(rp), np.zeros_like(rp)
-    gains, expected = [], []
+    added, expected = [], []
     try:
         whole, whole_signal = _refit_predict(lin, X, k_base, np.ones(len(rp), bool), (signal,))
         for k in range(STRETCHES):
@@ -738,23 +750,24 @@ def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Find
             if not (np.all(np.isfinite(b[test])) and np.all(np.isfinite(a[test]))):
                 raise SolverError("a stretch leaves a nuisance undetermined")
             before[test], after[test] = b[test], a[test]
-            gains.append(_predictive_gain(whole, (b, a), ~test))
-            expected.append(_predictive_gain(whole_signal, held_signal, ~test))
+            added.append(_predictive_chi2(whole, (b, a), ~test))
+            expected.append(np.subtract(*_predictive_chi2(whole_signal, held_signal, ~test)))
     except (np.linalg.LinAlgError, SolverError):  # a stretch whose removal leaves a nuisance free
         return _heldout_projected(lin, rp, finding, others)
-    return _sensor_rms(lin, finding, before, after, _gain_z(np.array(gains), np.array(expected)))
+    added = np.array(added)
+    return _sensor_rms(lin, finding, before, after,
+                       (_gain_z(added[:, 0] - added[:, 1], np.array(expected)), *(added.sum(0) / np.sum(stretch >= 0))))
 
 
-def _predictive_gain(whole: tuple[np.ndarray, np.ndarray], held: tuple[np.ndarray, np.ndarray],
-                     train: np.ndarray) -> float:
-    """How much more the term predicts a held-out stretch: the stretch's predictive chi2 without
-    the term less with it. A stretch's predictive chi2 is what it adds to the fitted chi2
-    (``whole``: the residuals without and with the term fitted to every row; ``held``: fitted
-    to the ``train`` rows). For the linearised model that is its residual judged by its whole
-    predictive covariance: the measurement noise, the calibration's uncertainty and a walk's
-    across the gap."""
-    added = [float(w @ w - h[train] @ h[train]) for w, h in zip(whole, held)]
-    return added[0] - added[1]
+def _predictive_chi2(whole: tuple[np.ndarray, np.ndarray], held: tuple[np.ndarray, np.ndarray],
+                     train: np.ndarray) -> tuple[float, float]:
+    """A held-out stretch's predictive chi2 without and with the term: what it adds to the fitted
+    chi2 (``whole``: the residuals without and with the term fitted to every row; ``held``:
+    fitted to the ``train`` rows). For the linearised model that is its residual judged by its
+    whole predictive covariance: the measurement noise, the calibration's uncertainty and a
+    walk's across the gap."""
+    b, a = (float(w @ w - h[train] @ h[train]) for w, h in zip(whole, held))
+    return b, a
 
 
 def _gain_z(gains: np.ndarray, expected: np.ndarray) -> float:
@@ -777,12 +790,12 @@ def _gain_z(gains: np.ndarray, expected: np.ndarray) -> float:
 
 
 def _sensor_rms(lin: Linearised, finding: Finding, before: np.ndarray, after: np.ndarray,
-                z: float | None = None) -> tuple[float, float, float]:
+                proof: tuple[float, ...] | None = None) -> HeldOut:
     """Held-out RMS of the finding's sensor rows without and with the term (``WHITENED``: of
-    every row it reaches, whitened), and ``z``; without it, the z-score of the whitened squared
-    error's decrease (the model's own weights: a precise rest mean counts for more than a noisy
-    motion sample) summed per rest and per motion, its mean over them against its standard
-    error (paired; positive: the term predicts better)."""
+    every row it reaches, whitened) and ``proof`` (z, predictive chi2/n without and with); without
+    it, the z-score of the whitened squared error's decrease (the model's own weights: a precise
+    rest mean counts for more than a noisy motion sample) summed per rest and per motion, its
+    mean over them against its standard error (paired; positive: the term predicts better)."""
     sensor = finding.tested.candidate.heldout_sensor or finding.tested.candidate.sensor
     rows = np.any(finding.tested.candidate.columns != 0, axis=1)
     if sensor == WHITENED:
@@ -795,18 +808,17 @@ def _sensor_rms(lin: Linearised, finding: Finding, before: np.ndarray, after: np
         e1, _, w1 = raw_units(lin, np.where(rows, after, 0))[sensor]
     used = np.any(e0 != 0, axis=1)
     if not used.any():
-        return float("nan"), float("nan"), float("nan")
+        return HeldOut(float("nan"), float("nan"), float("nan"))
     rms = lambda e: float(np.sqrt(np.mean(e[used] ** 2)))  # noqa: E731
-    if z is None:
+    if proof is None:
         _, where = np.unique(group[used], return_inverse=True)
         d = np.bincount(where, (w0[used] ** 2 - w1[used] ** 2).sum(axis=1))
         sd = float(np.std(d, ddof=1)) if len(d) > 1 else 0.0
-        z = float(np.mean(d) / (sd / np.sqrt(len(d)))) if sd > 0 else 0.0
-    return rms(e0), rms(e1), z
+        proof = (float(np.mean(d) / (sd / np.sqrt(len(d)))) if sd > 0 else 0.0,)
+    return HeldOut(rms(e0), rms(e1), *map(float, proof))
 
 
-def _heldout_projected(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]
-                       ) -> tuple[float, float, float]:
+def _heldout_projected(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]) -> HeldOut:
     """Each rest and each motion (with its attitude-path rows) predicted by the projected columns
     fitted to every other one, the nominal model's residual their target: a motion term (only
     the motion's own attitude path could copy it, and a held-out motion is whole), and the
@@ -821,7 +833,9 @@ def _heldout_projected(lin: Linearised, rp: np.ndarray, finding: Finding, others
     (chi_b, before[used]), (chi_a, after[used]) = (_leave_one_out(X[used], rp[used], g) for X in (base, full))
     signal = (finding.tested.projected @ finding.theta)[used]  # the term as fitted to every row
     (sig_b, _), (sig_a, _) = (_leave_one_out(X[used], signal, g) for X in (base, full))
-    return _sensor_rms(lin, finding, before, after, _gain_z(chi_b - chi_a, sig_b - sig_a))
+    n = used.sum()
+    return _sensor_rms(lin, finding, before, after, (_gain_z(chi_b - chi_a, sig_b - sig_a), chi_b.sum() / n,
+                                                     chi_a.sum() / n))
 
 
 def _leave_one_out(X: np.ndarray, r: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
