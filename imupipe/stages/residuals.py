@@ -184,7 +184,7 @@ def diagnose_session(inputs: Mapping[str, pa.Table], params: MapParams, solver: 
 
 DIAGNOSE = Stage(
     name="diagnose",
-    version="16",
+    version="17",
     func=diagnose_session,
     inputs=STAGE.inputs,
     outputs={"samples": "sample_residuals", "map": "residual_map", "diagnosis": "diagnosis"},
