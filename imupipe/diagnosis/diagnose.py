@@ -205,8 +205,7 @@ def _not_stood_behind(doc: dict, candidates: list[str], explanation: str) -> dic
         doc["sensor"], doc["axes"], doc["regime"], doc["windows"],
         {"candidates": candidates, doc["effect"]: doc["parameters"]}, doc["significance"]["statistic"],
         doc["significance"]["p_value"], explanation)
-    for key in ("heldout_rms_before", "heldout_rms_after", "heldout_z", "heldout_chi2_n_before", "heldout_chi2_n_after"):
-        out[key] = doc[key]
+    out.update({k: v for k, v in doc.items() if k.startswith("heldout_")})
     return out
 
 

@@ -755,8 +755,8 @@ def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Find
     except (np.linalg.LinAlgError, SolverError):  # a stretch whose removal leaves a nuisance free
         return _heldout_projected(lin, rp, finding, others)
     added = np.array(added)
-    return _sensor_rms(lin, finding, before, after,
-                       (_gain_z(added[:, 0] - added[:, 1], np.array(expected)), *(added.sum(0) / np.sum(stretch >= 0))))
+    chi2_n = added.sum(0) / np.sum(stretch >= 0)
+    return _sensor_rms(lin, finding, before, after, (_gain_z(added[:, 0] - added[:, 1], np.array(expected)), *chi2_n))
 
 
 def _predictive_chi2(whole: tuple[np.ndarray, np.ndarray], held: tuple[np.ndarray, np.ndarray],
@@ -766,7 +766,7 @@ def _predictive_chi2(whole: tuple[np.ndarray, np.ndarray], held: tuple[np.ndarra
     fitted to the ``train`` rows). For the linearised model that is its residual judged by its
     whole predictive covariance: the measurement noise, the calibration's uncertainty and a
     walk's across the gap."""
-    b, a = (float(w @ w - h[train] @ h[train]) for w, h in zip(whole, held))
+    b, a = (float(w @ w - h[train] @ h[train]) for w, h in zip(whole, held))  # without, with
     return b, a
 
 
