@@ -94,8 +94,7 @@ def catalogue_findings(lin, tested: list, effects: dict, q: float = Q_FDR, held_
                                   "reason": unphysical or
                                   "held-out prediction did not improve significantly (RMS "
                                   f"{doc['heldout_rms_before']:.4g} -> {doc['heldout_rms_after']:.4g}, "
-                                  f"z = {doc['heldout_z']:.2f} < {HELDOUT_Z})",
-                                  **{k: doc[k] for k in ("heldout_chi2_n_before", "heldout_chi2_n_after")}})
+                                  f"z = {doc['heldout_z']:.2f} < {HELDOUT_Z})", **_heldout_fields(doc)})
     return rp, findings, not_confirmed, kept
 
 
@@ -205,8 +204,12 @@ def _not_stood_behind(doc: dict, candidates: list[str], explanation: str) -> dic
         doc["sensor"], doc["axes"], doc["regime"], doc["windows"],
         {"candidates": candidates, doc["effect"]: doc["parameters"]}, doc["significance"]["statistic"],
         doc["significance"]["p_value"], explanation)
-    out.update({k: v for k, v in doc.items() if k.startswith("heldout_")})
+    out.update(_heldout_fields(doc))
     return out
+
+
+def _heldout_fields(doc: dict) -> dict:
+    return {k: v for k, v in doc.items() if k.startswith("heldout_")}
 
 
 def _ambiguous(doc: dict, rivals: list[str]) -> dict:

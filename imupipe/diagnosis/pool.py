@@ -232,7 +232,7 @@ def session_heldout(parts: list[Linearised]):
     by the calibration and the terms fitted to the others (one linearised step), its own biases
     and nuisances refitted to it, without and with the finding's term; the RMS and the paired
     z over every session's rests and motions (``_sensor_rms``). A session without which the
-    training sessions cannot determine the terms falls back to the blocked folds."""
+    training sessions cannot determine the terms falls back to the blocked stretches (``select.heldout``)."""
 
     def held_out(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]
                  ) -> HeldOut:

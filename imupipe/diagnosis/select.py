@@ -704,7 +704,8 @@ def _refit_predict(lin: Linearised, X: np.ndarray, k_base: int, train: np.ndarra
     ``k - k_base`` columns and with them; for the fit's residual and then each of ``targets``
     (residual vectors refitted the same way). One factorisation of the system serves all."""
     w = train.astype(float)
-    Jg = np.hstack([lin.J_g, X]) * w[:, None]
+    J = np.hstack([lin.J_g, X])
+    Jg = J * w[:, None]
     Jl = (sp.diags(w) @ lin.J_l).tocsr()
     system = Bordered(Jg, Jl, lin.model.stages.offsets)
     out = []
@@ -713,10 +714,10 @@ def _refit_predict(lin: Linearised, X: np.ndarray, k_base: int, train: np.ndarra
         g_g, g_l = -(Jg.T @ rw), -np.asarray(Jl.T @ rw)
         y = system.blocks.solve(g_l)
         pair = []
-        for P in (lin.J_g.shape[1] + k_base, Jg.shape[1]):
+        for P in (lin.J_g.shape[1] + k_base, J.shape[1]):
             x_g = np.linalg.solve(system.S[:P, :P], g_g[:P] - system.A_lg[:, :P].T @ y)
             x_l = y - system.X[:, :P] @ x_g
-            pair.append(r + np.hstack([lin.J_g, X])[:, :P] @ x_g + lin.J_l @ x_l)
+            pair.append(r + J[:, :P] @ x_g + lin.J_l @ x_l)
         out.append((pair[0], pair[1]))
     return out
 
