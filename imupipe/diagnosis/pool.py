@@ -22,15 +22,17 @@ by effect, sensor, regime and fixed parameters: one effect, one parameter set ac
 sessions. ``diagnose_pooled`` then runs the single-session statistics (visible fraction, at
 least any one session's own; score tests, Benjamini-Hochberg forward selection, wild bootstrap)
 on the pooled system. The held-out check is by session from ``BY_SESSION_MIN`` sessions on
-(``session_heldout``: each predicted by what the others fitted), else by blocked stretches of
-time, each held out in turn (with two, one session alone could not determine an effect
-only both together show). ``pooled_walks`` estimates the bias walks from all sessions with one
-``k``: the pooled model's nuisances (``pipeline/pooled.py`` evaluates each session with them).
+(``session_heldout``: each predicted by what the others fitted), else by each session's halves,
+each held out in turn (with two, one session alone could not determine an effect only both
+together show; a shorter stretch its own session's bias walk bridges, taking up the term).
+``pooled_walks`` estimates the bias walks from all sessions with one ``k``: the pooled model's
+nuisances (``pipeline/pooled.py`` evaluates each session with them).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from types import SimpleNamespace
 
 import numpy as np
@@ -46,8 +48,8 @@ from .diagnose import catalogue_findings, coverage
 from .evaluate import Evaluation
 from .forward import Globals, Rows
 from .linearised import Linearised
-from .select import (BLOCK_S, BOOT_DRAWS, Q_FDR, Candidate, Finding, HeldOut, _sensor_rms, candidates, examine, heldout,
-                     rigid_walks)
+from .select import (BLOCK_S, BOOT_DRAWS, Q_FDR, Candidate, Finding, HeldOut, _sensor_rms, _stretch_of_rows, candidates,
+                     examine, heldout, rigid_walks)
 
 PER_SESSION = ("b_a", "b_g")  # the turn-on bias of each power cycle: never shared
 GAP_S = 60.0  # pooled time between two sessions (beyond any window's or block's reach)
@@ -55,6 +57,7 @@ SAME_UNIT_TOL = 0.02  # largest difference of S_a or M_g entries two recordings 
 SAME_G_TOL = 1e-3  # relative difference of the sessions' local gravity
 BY_SESSION_MIN = 3  # sessions from which a finding is held out by session (two: the other one alone
 # could not determine an effect only the two together show)
+PARTS_PER_SESSION = 2  # fewer sessions: each session's halves held out in turn
 
 
 @dataclass
@@ -198,8 +201,9 @@ def diagnose_pooled(evaluations: list[Evaluation], effects: dict, sessions: list
         tested[-1].visible = max([tested[-1].visible] + [examine(p, o, r).visible for p, o, r
                                                          in zip(parts, own, rigid_own) if o is not None])
     by_session = len(parts) >= BY_SESSION_MIN
+    halves = partial(heldout, stretch=_stretch_of_rows(lin, PARTS_PER_SESSION, lin.model.row_session))
     _, findings, not_confirmed, _ = catalogue_findings(lin, tested, effects, q,
-                                                       session_heldout(parts) if by_session else heldout,
+                                                       session_heldout(parts) if by_session else halves,
                                                        latitude_deg)
     for f in findings:
         f["windows"], f["window_sessions"] = _session_windows(lin.model, f["windows"], sessions)
@@ -214,7 +218,7 @@ def diagnose_pooled(evaluations: list[Evaluation], effects: dict, sessions: list
                       f"{BOOT_DRAWS} draws), Benjamini-Hochberg forward selection with a backward check, "
                       + ("held out by session: each session predicted from the others' calibration and "
                          "terms, its own biases and nuisances refitted" if by_session else
-                         "blocked cross-validation over stretches of every session, each held out in turn")}
+                         "blocked cross-validation over each session's halves, each held out in turn")}
 
 
 def _session_windows(model: PooledModel, wins: list, sessions: list[str]) -> tuple[list, list]:

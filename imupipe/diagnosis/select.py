@@ -682,18 +682,26 @@ class HeldOut(NamedTuple):
     chi2_n_after: float = float("nan")
 
 
-def _stretch_of_rows(lin: Linearised, stretches: int = STRETCHES) -> np.ndarray:
+def _stretch_of_rows(lin: Linearised, stretches: int = STRETCHES, session: np.ndarray | None = None) -> np.ndarray:
     """(N,) the stretch of every data row (-1: prior rows, in every training set): the recording
-    cut into ``stretches`` contiguous stretches of time, each rest and each motion whole in one."""
+    cut into ``stretches`` contiguous stretches of time, each rest and each motion whole in one;
+    with ``session`` (N,: each row's), every session cut into ``stretches`` of its own."""
     groups = _row_groups(lin)
     used = groups >= 0
-    t_group = np.bincount(groups[used], lin.rows.t[used]) / np.maximum(np.bincount(groups[used]), 1)
-    present = np.bincount(groups[used]) > 0
-    rank = np.full(len(t_group), -1)
-    order = np.flatnonzero(present)[np.argsort(t_group[present], kind="stable")]
-    rank[order] = np.arange(len(order))
+    g = groups[used]
+    t_group = np.bincount(g, lin.rows.t[used]) / np.maximum(np.bincount(g), 1)
+    s_group = np.zeros(len(t_group), int)
+    if session is not None:
+        s_group[g] = session[used]
+    order = np.flatnonzero(np.bincount(g) > 0)
+    order = order[np.lexsort((t_group[order], s_group[order]))]
+    s = s_group[order]
+    count = np.bincount(s)
+    first = np.cumsum(count) - count
+    of_group = np.full(len(t_group), -1)
+    of_group[order] = s * stretches + (np.arange(len(order)) - first[s]) * stretches // count[s]
     stretch = np.full(len(lin.r), -1)
-    stretch[used] = rank[groups[used]] * stretches // max(len(order), 1)
+    stretch[used] = of_group[g]
     return stretch
 
 
@@ -722,7 +730,8 @@ def _refit_predict(lin: Linearised, X: np.ndarray, k_base: int, train: np.ndarra
     return out
 
 
-def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]) -> HeldOut:
+def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding],
+            stretch: np.ndarray | None = None) -> HeldOut:
     """Blocked cross-validated RMS (sensor units) of the finding's sensor rows without and with
     its term (others already accepted are in both), and the z-score of the improvement: the
     predictive chi2's decrease over the stretches (``_predictive_chi2``, ``_gain_z``). Each
@@ -732,10 +741,10 @@ def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Find
     the rows it is judged on would pass for any slow term there, and it bridges single held-out
     rests as well as the term does. A motion term is held out by single rests and motions
     (``_heldout_projected``): only its motion's own attitude path could copy it, and a held-out
-    motion is whole."""
+    motion is whole. ``stretch`` (N,): other stretches (``_stretch_of_rows``' face)."""
     if finding.tested.candidate.regime == "motion":
         return _heldout_projected(lin, rp, finding, others)
-    stretch = _stretch_of_rows(lin)
+    stretch = _stretch_of_rows(lin) if stretch is None else stretch
     X = np.hstack([f.tested.candidate.columns for f in others] + [finding.tested.candidate.columns])
     k_base = X.shape[1] - finding.tested.candidate.columns.shape[1]
     signal = finding.tested.candidate.columns @ finding.theta  # the term as fitted to every row
@@ -743,10 +752,8 @@ def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Find
     added, expected = [], []
     try:
         whole, whole_signal = _refit_predict(lin, X, k_base, np.ones(len(rp), bool), (signal,))
-        for k in range(STRETCHES):
+        for k in np.unique(stretch[stretch >= 0]):
             test = stretch == k
-            if not test.any():
-                continue
             (b, a), held_signal = _refit_predict(lin, X, k_base, ~test, (signal,))
             if not (np.all(np.isfinite(b[test])) and np.all(np.isfinite(a[test]))):
                 raise SolverError("a stretch leaves a nuisance undetermined")

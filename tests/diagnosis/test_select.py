@@ -14,8 +14,8 @@ from forward_synth import G, joint_model, noise_free_imu, rests_from_truth, smal
 
 from imupipe.diagnosis.forward import MotionAccel
 from imupipe.diagnosis.linearised import fit
-from imupipe.diagnosis.select import (STRETCHES, _gain_z, _leave_one_out, _stretch_of_rows, candidates, examine,
-                                      rigid_walks, select)
+from imupipe.diagnosis.select import (STRETCHES, _gain_z, _leave_one_out, _row_groups, _stretch_of_rows, candidates,
+                                      examine, rigid_walks, select)
 from imupipe.models import T_REF_C
 from imupipe.sim.api import known_effects, simulate_arrays
 from imupipe.sim.sensor import first_order_lag
@@ -69,6 +69,23 @@ def test_held_out_stretches_are_whole_rests_and_motions_contiguous_in_time(fitte
     order = np.argsort(lin.rows.t[rest], kind="stable")
     assert np.all(np.diff(stretch[rest][order]) >= 0)  # contiguous in time
     assert len(np.unique(stretch[data])) == min(STRETCHES, lin.model.n)
+
+
+def test_with_sessions_each_session_is_cut_into_stretches_of_its_own(fitted):
+    lin = fitted[-1]
+    group = _row_groups(lin)
+    data = group >= 0
+    t_group = np.bincount(group[data], lin.rows.t[data]) / np.maximum(np.bincount(group[data]), 1)
+    session = np.where(data, t_group[group] > np.quantile(t_group, 0.3), 0).astype(int)  # of unequal length
+    stretch = _stretch_of_rows(lin, 2, session)
+    assert np.array_equal(stretch >= 0, data)
+    for s, halves in ((0, {0, 1}), (1, {2, 3})):
+        mine = data & (session == s)
+        assert set(stretch[mine]) == halves
+        per_half = [len(np.unique(group[mine & (stretch == h)])) for h in sorted(halves)]
+        assert abs(per_half[0] - per_half[1]) <= 1  # each half of the session's rests and motions
+        first, second = (lin.rows.t[mine & (stretch == h)] for h in sorted(halves))
+        assert first.max() <= second.min()
 
 
 def test_leave_one_out_in_closed_form_is_the_refit_without_the_group():
