@@ -135,14 +135,15 @@ def reml_cost(q: float, t_start: np.ndarray, t_end: np.ndarray, r: np.ndarray, v
 
 
 def estimate_intensity(t_start: np.ndarray, t_end: np.ndarray, resid: np.ndarray, var: np.ndarray,
-                       X: np.ndarray, H: np.ndarray | None = None) -> tuple[float, float]:
+                       X: np.ndarray, H: np.ndarray | None = None, min_lr: float = MIN_LR) -> tuple[float, float]:
     """REML intensity ``q`` of a walk, and the extra scatter ``nu`` that is NOT time-correlated.
 
     ``resid`` (n, a): ``a`` independent series of interval averages (e.g. the three gyro axes)
     sharing one ``q`` (pooled: a per-axis estimate from one session scatters by a factor 2);
     ``var`` (n, a) their white variances; ``X`` (n, p) regressors profiled out (a constant
     column at least); ``H`` (n, D) projects a D-dimensional walk onto a single series (a = 1).
-    ``q = 0`` unless the walk improves the restricted likelihood by ``MIN_LR`` (5 % false alarms).
+    ``q = 0`` unless the walk improves the restricted likelihood by ``min_lr`` (default 5 % false
+    alarms: a walk detected; 0, the likelihood's maximum: a nuisance estimated).
     """
     resid = np.asarray(resid, float).reshape(len(resid), -1)
     var = np.asarray(var, float).reshape(len(var), -1)
@@ -163,7 +164,7 @@ def estimate_intensity(t_start: np.ndarray, t_end: np.ndarray, resid: np.ndarray
     C = np.array([[cost(q, nu) for nu in nus] for q in qs])
     i, j = np.unravel_index(np.argmin(C), C.shape)
     nu = float(nus[j])
-    if i == 0 or C[0].min() - C[i, j] < MIN_LR:
+    if i == 0 or C[0].min() - C[i, j] < min_lr:
         return 0.0, float(nus[np.argmin(C[0])])
     from scipy.optimize import minimize_scalar  # here: importing scipy.optimize costs ~0.25 s
 

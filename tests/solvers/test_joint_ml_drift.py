@@ -78,3 +78,21 @@ def test_walk_is_found_and_jumps_are_scatter_not_walk():
     jumps = rng.normal(size=(n, 3)) * 3e-4  # independent rest-to-rest scatter, no time correlation
     est, nu = estimate_intensity(t_start, t_end, jumps, var, np.ones((n, 1)))
     assert est < 0.1 * q and nu > 0
+
+
+def test_a_weak_walk_the_detection_misses_is_still_estimated_at_the_likelihoods_maximum():
+    n = 60
+    t_start = np.arange(n) * 6.0
+    t_end, var, q = t_start + 3.0, np.full((n, 3), 1e-8), 2e-11  # a walk of the noise's size over the span
+    detected, estimated = [], []
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        r = np.cumsum(rng.normal(size=(n, 3)) * np.sqrt(q * 6.0), axis=0) + rng.normal(size=(n, 3)) * 1e-4
+        detected.append(estimate_intensity(t_start, t_end, r, var, np.ones((n, 1)))[0])
+        estimated.append(estimate_intensity(t_start, t_end, r, var, np.ones((n, 1)), min_lr=0.0)[0])
+    detected, estimated = np.array(detected), np.array(estimated)
+    missed = detected == 0
+    assert 2 <= missed.sum() <= 8
+    np.testing.assert_array_equal(estimated[~missed], detected[~missed])
+    assert np.all(estimated[missed] > 0)
+    assert 0.3 * q < np.median(estimated) < 3 * q
