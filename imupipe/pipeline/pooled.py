@@ -106,19 +106,19 @@ def _check_sensors(sessions: list[Path], spec: Pipeline, registry: Registry) -> 
 
 
 def _walks(inputs: list[dict], params) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Each session's bias-walk intensities for the pooled model: its own, or the pooled estimate
-    (``diagnosis.pool.pooled_walks``: one k for all) where that is larger."""
+    """Each session's bias-walk intensities for the pooled model: its own (``null_walks``), or the
+    pooled estimate (``diagnosis.pool.pooled_walks``: one k for all) where that is larger."""
     from ..diagnosis.pool import pooled_walks
     from ..models import Calibration
     from ..observations import Rests
     from ..stages.refine import STANDARD_GRAVITY
-    from ..stages.residuals import walk_intensities
+    from ..stages.residuals import null_walks
 
     cals = [Calibration.from_tables(one["calibration"]) for one in inputs]
     g = params.g_m_s2 or float(cals[0]["gyro"].details.get("joint", {}).get("gravity_m_s2", STANDARD_GRAVITY))
-    q_a, q_g = pooled_walks([Rests.from_table(one["rests"]) for one in inputs], [c["accel"] for c in cals],
-                            [c["gyro"] for c in cals], g)
-    return [(np.maximum(a, q_a), np.maximum(b, q_g)) for a, b in map(walk_intensities, cals)]
+    rests = [Rests.from_table(one["rests"]) for one in inputs]
+    q_a, q_g = pooled_walks(rests, [c["accel"] for c in cals], [c["gyro"] for c in cals], g)
+    return [(np.maximum(a, q_a), np.maximum(b, q_g)) for a, b in (null_walks(c, r, g) for c, r in zip(cals, rests))]
 
 
 def _diagnose_node(spec: Pipeline) -> Node:

@@ -44,7 +44,7 @@ from ..errors import SolverError
 from ..models import T_REF_C, TriadCalibration
 from ..observations import Rests, TriadFit, Turns
 from ..rotations import rotation_angle
-from .brownian import estimate_intensity
+from .brownian import MIN_LR, estimate_intensity
 from .gyro_integration import drop_saturated, saturated_turns
 from .triad_covariance import shape_basis
 
@@ -140,8 +140,8 @@ def _dT(rests: Rests) -> np.ndarray:
     return np.where(np.isfinite(rests.temperature), rests.temperature, T_REF_C) - T_REF_C
 
 
-def gyro_walk_intensity(rests: Rests, gyro: TriadCalibration, fit_k: bool,
-                        sigma_rw: float | None) -> tuple[np.ndarray, float | None]:
+def gyro_walk_intensity(rests: Rests, gyro: TriadCalibration, fit_k: bool, sigma_rw: float | None,
+                        min_lr: float = MIN_LR) -> tuple[np.ndarray, float | None]:
     """(3,) gyro bias random-walk intensity, rad^2/s^3, and the rests' scatter beyond white
     noise without time correlation, (rad/s)^2 (None when not estimated): the configured
     ``sigma_rw`` (rad/s/sqrt(s)) squared, else REML from the rests' gyro means about the
@@ -152,7 +152,8 @@ def gyro_walk_intensity(rests: Rests, gyro: TriadCalibration, fit_k: bool,
     itself (the walk copies it for free) from the residual map and the diagnosis that look for
     it. Where profiling it leaves no walk at all, the walk's own evidence was the slow part the
     law took (a walk and a smooth law are not told apart over a few long rests), and the estimate
-    without it stands: a walk set to zero would flag its own wander as misfit."""
+    without it stands: a walk set to zero would flag its own wander as misfit. ``min_lr``: the
+    detection's threshold (``brownian.estimate_intensity``)."""
     if sigma_rw is not None:
         return np.full(3, float(sigma_rw) ** 2), None
     dT = _dT(rests)
@@ -162,14 +163,15 @@ def gyro_walk_intensity(rests: Rests, gyro: TriadCalibration, fit_k: bool,
     X = np.column_stack([np.ones(len(rests)), a / np.linalg.norm(a, axis=1, keepdims=True),
                          *([dT] if fit_k else [])])
     var = np.diagonal(rests.cov_of_mean("gyro"), axis1=1, axis2=2)
-    q, nu = estimate_intensity(rests.t_start_s, rests.t_end_s, resid, var, np.column_stack([X, dT ** 2]))
+    q, nu = estimate_intensity(rests.t_start_s, rests.t_end_s, resid, var, np.column_stack([X, dT ** 2]),
+                               min_lr=min_lr)
     if q == 0:
-        q, nu = estimate_intensity(rests.t_start_s, rests.t_end_s, resid, var, X)
+        q, nu = estimate_intensity(rests.t_start_s, rests.t_end_s, resid, var, X, min_lr=min_lr)
     return np.full(3, q), nu
 
 
 def accel_walk_intensity(rests: Rests, accel: TriadCalibration, gravity: float, fit_k: bool,
-                         sigma_rw: float | None) -> np.ndarray:
+                         sigma_rw: float | None, min_lr: float = MIN_LR) -> np.ndarray:
     """(3,) accelerometer bias random-walk intensity, (m/s^2)^2/s per axis (isotropic): the
     configured ``sigma_rw`` squared, else REML from the rests' |g| errors under the start
     (a walk shows along gravity only: the tilt part is each rest's unknown direction), with
@@ -198,7 +200,7 @@ def accel_walk_intensity(rests: Rests, accel: TriadCalibration, gravity: float, 
     u = x / np.linalg.norm(x, axis=1, keepdims=True)
     H = u @ accel.M  # the walk, in raw axes, seen along gravity
     var = np.einsum("ni,nij,nj->n", H, rests.cov_of_mean("accel"), H)
-    q, _ = estimate_intensity(rests.t_start_s, rests.t_end_s, r[:, None], var[:, None], X, H)
+    q, _ = estimate_intensity(rests.t_start_s, rests.t_end_s, r[:, None], var[:, None], X, H, min_lr=min_lr)
     return np.full(3, q)
 
 

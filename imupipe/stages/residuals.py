@@ -70,10 +70,28 @@ def walk_intensities(cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
             np.asarray(joint.get("gyro_bias_walk", {}).get("q", [0.0] * 3), float))
 
 
+def null_walks(cal: Calibration, rests: Rests, gravity: float) -> tuple[np.ndarray, np.ndarray]:
+    """The diagnosis's null model's bias-walk intensities (``walk_intensities``' face): the joint
+    refinement's, with a walk it estimated but did not detect (zero at its 5 % test) estimated at
+    the likelihood's maximum under the fitted calibration instead. Set to zero, a weak walk's
+    wander passes for slow misfit (measured: on a standard null, an accelerometer walk of 1e-10
+    (m/s^2)^2/s, not detected, made an accelerometer term significant; estimated 5.8e-11, none)."""
+    from ..solvers.joint_ml import accel_walk_intensity, gyro_walk_intensity
+
+    q_a, q_g = walk_intensities(cal)
+    joint = cal["gyro"].details.get("joint", {})
+    fit_k = bool(joint.get("fitted_temperature_coefficients"))
+    if joint.get("gyro_bias_walk", {}).get("estimated") and not q_g.any():
+        q_g = gyro_walk_intensity(rests, cal["gyro"], fit_k, None, min_lr=0.0)[0]
+    if joint.get("accel_bias_walk", {}).get("estimated") and not q_a.any():
+        q_a = accel_walk_intensity(rests, cal["accel"], gravity, fit_k, None, min_lr=0.0)
+    return q_a, q_g
+
+
 def evaluation(inputs: Mapping[str, pa.Table], params: MapParams,
                walks: tuple[np.ndarray, np.ndarray] | None = None) -> Evaluation:
     """The per-sample model of the session under the input calibration (held fixed); ``walks``:
-    the bias walks' intensities ``(q_a, q_g)`` instead of the calibration's (a pooled estimate)."""
+    the bias walks' intensities ``(q_a, q_g)`` instead of ``null_walks`` (a pooled estimate)."""
     from ..diagnosis.evaluate import evaluate
 
     rests = Rests.from_table(inputs["rests"])
@@ -81,8 +99,8 @@ def evaluation(inputs: Mapping[str, pa.Table], params: MapParams,
     cal = Calibration.from_tables(inputs["calibration"])
     accel, gyro = cal["accel"], cal["gyro"]
     joint = gyro.details.get("joint", {})
-    q_a, q_g = walks if walks is not None else walk_intensities(cal)
     g = params.g_m_s2 or float(joint.get("gravity_m_s2", STANDARD_GRAVITY))
+    q_a, q_g = walks if walks is not None else null_walks(cal, rests, g)
     streams = {}
     for s in ("accel", "gyro"):
         t_ns, y = xyz(inputs[s])
@@ -146,7 +164,7 @@ def _edge(x) -> float:
 
 STAGE = Stage(
     name="map_residuals",
-    version="13",
+    version="14",
     func=map_residuals,
     inputs={"accel": "accel", "gyro": "gyro", "temperature": "temperature", "rests": "rests",
             "turns": "turns", "calibration": "calibration", "events": "events", "mag": "mag",
@@ -184,7 +202,7 @@ def diagnose_session(inputs: Mapping[str, pa.Table], params: MapParams, solver: 
 
 DIAGNOSE = Stage(
     name="diagnose",
-    version="17",
+    version="18",
     func=diagnose_session,
     inputs=STAGE.inputs,
     outputs={"samples": "sample_residuals", "map": "residual_map", "diagnosis": "diagnosis"},
