@@ -172,12 +172,13 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
 
     ``streams``: ``{"accel": (t (k,) s, y (k, 3)), "gyro": ...}`` raw, seconds from the
     session's first sample (the rests' clock); ``turns``: the motions between consecutive rests;
-    ``q_*``: the bias random walks' intensities (per axis; the joint fit's); ``temperature``:
-    (t, T degC) for the samples inside motions; ``events``: those of the recording (motions
-    overlapping a gap, shock, splice or saturation are left out); ``refit``: the calibration is
-    refitted to every sample with the nuisances (the map then judges the model, not the
-    estimation error of a calibration fitted to rest means and turn end-points only, which
-    the samples of long turns resolve better); else it is held fixed.
+    ``q_*``: the bias random walks' intensities (per axis; the null model's,
+    ``stages.residuals.null_walks``); ``temperature``: (t, T degC) for the samples inside motions;
+    ``events``: those of the recording (motions overlapping a gap, shock, splice or saturation
+    are left out); ``refit``: the calibration is refitted to every sample with the nuisances
+    (the map then judges the model, not the estimation error of a calibration fitted to rest
+    means and turn end-points only, which the samples of long turns resolve better); else it
+    is held fixed.
     """
     events = list(events)
     t_a, y_a = streams["accel"]
