@@ -4,9 +4,9 @@ A die temperature read out in coarse steps (0.125 degC for a BMI088, updated
 every 1.28 s) is an errors-in-variables regressor: rest means of the steps are
 biased by up to half a step, and a model fitted on them finds fake dynamics
 (``research/missing-physics.md`` E15: a quantised read-out mimics a 20 s
-thermal lag). The models use the zero-phase moving average of the read-out over
-``window_s`` instead, which removes the steps and, for thermal time constants of
-minutes, nothing else.
+thermal lag). The models use the read-out smoothed over ``window_s`` instead (a
+local line: zero-phase, and unbiased by a steady rise at the recording's ends),
+which removes the steps and, for thermal time constants of minutes, nothing else.
 """
 
 from __future__ import annotations
@@ -25,26 +25,39 @@ RATE_S = SMOOTH_S  # s: knot spacing of the curve whose slope is the read-out's 
 
 
 def smoothed(t: np.ndarray, T: np.ndarray, window_s: float = SMOOTH_S) -> np.ndarray:
-    """(n,) the centred moving average of ``T`` (n,) over ``window_s`` seconds (shrinking at the
-    ends), at the sample times ``t`` (n,) s (sorted). NaN samples are skipped."""
+    """(n,) ``T`` (n,) at the sample times ``t`` (n,) s (sorted), smoothed: the least-squares line
+    through the samples of a ``window_s`` window centred on each, at its time (the centred moving
+    average, where the samples are even). Within half a window of either end the window stays
+    whole, on the one side: an average over a window that shrinks there lags a rising
+    temperature (a cold start's first sample by a quarter window's rise, ~0.25 degC at 2 degC/min,
+    which a gyro's ``k`` made a warm-up transient in null recordings). NaN samples are skipped."""
     t = np.asarray(t, float)
     T = np.asarray(T, float)
     ok = np.isfinite(T)
-    c = np.concatenate([[0.0], np.cumsum(np.where(ok, T, 0.0))])
-    k = np.concatenate([[0], np.cumsum(ok)])
-    lo = np.searchsorted(t, t - window_s / 2, "left")
-    hi = np.searchsorted(t, t + window_s / 2, "right")
-    n = k[hi] - k[lo]
-    return np.divide(c[hi] - c[lo], n, out=np.full(len(t), np.nan), where=n > 0)
+    if not len(t):
+        return T.copy()
+    x = t - t[0]  # small numbers: the sums of squares below cancel less
+    start = np.clip(x - window_s / 2, 0.0, max(x[-1] - window_s, 0.0))
+    lo = np.searchsorted(x, start, "left")
+    hi = np.searchsorted(x, start + window_s, "right")
+    y = np.where(ok, T, 0.0)
+    n, s_x, s_T, s_xx, s_xT = (c[hi] - c[lo] for c in (np.concatenate([[0.0], np.cumsum(np.where(ok, v, 0.0))])
+                                                       for v in (np.ones_like(x), x, y, x * x, x * y)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_x, mean_T = s_x / n, s_T / n
+        var_x = s_xx / n - mean_x**2
+        slope = np.where(var_x > 1e-12 * window_s**2, (s_xT / n - mean_x * mean_T) / var_x, 0.0)
+        out = mean_T + slope * (x - mean_x)
+    return np.where(n > 0, out, np.nan)
 
 
 def rate_curve(t: np.ndarray, T: np.ndarray, t_first: float, t_last: float, trim: bool = True) -> BSpline:
     """The temperature ``T`` (n,) degC at ``t`` (n,) s as a least-squares cubic spline with knots
     ``RATE_S`` apart (at quantiles of its samples): the read-out's steps average out within each
     interval, and its slope is smooth where a difference of the steps would not be. ``trim``: fitted
-    where a ``SMOOTH_S`` moving average of the stream is centred (half its window in from
-    [``t_first``, ``t_last``], where it shrinks and flattens the slope); extrapolated beyond; a line
-    when too short."""
+    half a ``SMOOTH_S`` window in from [``t_first``, ``t_last``] and extrapolated to them (fitted to
+    the ends as well, a gyro thermal lag's columns left a warm-up transient named beside it:
+    tests/diagnosis/test_gyro_terms.py); extrapolated beyond; a line when too short."""
     from scipy.interpolate import BSpline, make_lsq_spline
 
     t, T = np.asarray(t, float), np.asarray(T, float)

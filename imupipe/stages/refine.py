@@ -197,7 +197,7 @@ def refine_joint(inputs: Mapping[str, pa.Table], params: RefineParams,
 
 STAGE = Stage(
     name="refine_joint",
-    version="4",
+    version="5",
     func=refine_joint,
     inputs={"rests": "rests", "turns": "turns", "gyro": "gyro",
             "accel_calibration": "calibration", "gyro_calibration": "calibration",
