@@ -40,9 +40,13 @@ def smoothed(t: np.ndarray, T: np.ndarray, window_s: float = SMOOTH_S) -> np.nda
     start = np.clip(x - window_s / 2, 0.0, max(x[-1] - window_s, 0.0))
     lo = np.searchsorted(x, start, "left")
     hi = np.searchsorted(x, start + window_s, "right")
+
+    def window_sum(v: np.ndarray) -> np.ndarray:  # over each sample's window, NaN samples left out
+        c = np.r_[0.0, np.cumsum(np.where(ok, v, 0.0))]
+        return c[hi] - c[lo]
+
     y = np.where(ok, T, 0.0)
-    n, s_x, s_T, s_xx, s_xT = (c[hi] - c[lo] for c in (np.concatenate([[0.0], np.cumsum(np.where(ok, v, 0.0))])
-                                                       for v in (np.ones_like(x), x, y, x * x, x * y)))
+    n, s_x, s_T, s_xx, s_xT = map(window_sum, (np.ones_like(x), x, y, x * x, x * y))
     with np.errstate(invalid="ignore", divide="ignore"):
         mean_x, mean_T = s_x / n, s_T / n
         var_x = s_xx / n - mean_x**2

@@ -22,8 +22,9 @@ by effect, sensor, regime and fixed parameters: one effect, one parameter set ac
 sessions. ``diagnose_pooled`` then runs the single-session statistics (visible fraction, at
 least any one session's own; score tests, Benjamini-Hochberg forward selection, wild bootstrap)
 on the pooled system. The held-out check is by session from ``BY_SESSION_MIN`` sessions on
-(``session_heldout``: each predicted by what the others fitted), else by each session's halves,
-each held out in turn (with two, one session alone could not determine an effect only both
+(``session_heldout``: each predicted by what the others fitted), else (and where a session's
+absence leaves the terms undetermined) by each session's halves, each held out in turn
+(``session_halves``: with two, one session alone could not determine an effect only both
 together show; a shorter stretch its own session's bias walk bridges, taking up the term).
 ``pooled_walks`` estimates the bias walks from all sessions with one ``k``: the pooled model's
 nuisances (``pipeline/pooled.py`` evaluates each session with them).
@@ -201,9 +202,9 @@ def diagnose_pooled(evaluations: list[Evaluation], effects: dict, sessions: list
         tested[-1].visible = max([tested[-1].visible] + [examine(p, o, r).visible for p, o, r
                                                          in zip(parts, own, rigid_own) if o is not None])
     by_session = len(parts) >= BY_SESSION_MIN
-    halves = partial(heldout, stretch=_stretch_of_rows(lin, PARTS_PER_SESSION, lin.model.row_session))
+    halves = session_halves(lin)
     _, findings, not_confirmed, _ = catalogue_findings(lin, tested, effects, q,
-                                                       session_heldout(parts) if by_session else halves,
+                                                       session_heldout(parts, halves) if by_session else halves,
                                                        latitude_deg)
     for f in findings:
         f["windows"], f["window_sessions"] = _session_windows(lin.model, f["windows"], sessions)
@@ -231,12 +232,17 @@ def _session_windows(model: PooledModel, wins: list, sessions: list[str]) -> tup
     return out, names
 
 
-def session_heldout(parts: list[Linearised]):
+def session_halves(lin: Linearised):
+    """The blocked held-out check (``select.heldout``) over each session's halves of the pooled ``lin``."""
+    return partial(heldout, stretch=_stretch_of_rows(lin, PARTS_PER_SESSION, lin.model.row_session))
+
+
+def session_heldout(parts: list[Linearised], fallback):
     """The held-out check by session (``select.heldout``'s face): each session in turn predicted
     by the calibration and the terms fitted to the others (one linearised step), its own biases
     and nuisances refitted to it, without and with the finding's term; the RMS and the paired
     z over every session's rests and motions (``_sensor_rms``). A session without which the
-    training sessions cannot determine the terms falls back to the blocked stretches (``select.heldout``)."""
+    training sessions cannot determine the terms falls back to ``fallback`` (``session_halves``)."""
 
     def held_out(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Finding]
                  ) -> HeldOut:
@@ -250,7 +256,7 @@ def session_heldout(parts: list[Linearised]):
                 before[rows], after[rows] = _predict_session(parts, k, lin.model.x_common, X[~rows], X[rows],
                                                              k_base)
         except (np.linalg.LinAlgError, SolverError):
-            return heldout(lin, rp, finding, others)
+            return fallback(lin, rp, finding, others)
         return _sensor_rms(lin, finding, before, after)
 
     return held_out

@@ -62,24 +62,17 @@ def _events(table: pa.Table | None) -> list[Event]:
     return out
 
 
-def walk_intensities(cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
-    """(3,) and (3,): the accelerometer's and the gyro's bias random-walk intensities the joint
-    refinement fitted (zeros without one)."""
-    joint = cal["gyro"].details.get("joint", {})
-    return (np.asarray(joint.get("accel_bias_walk", {}).get("q", [0.0] * 3), float),
-            np.asarray(joint.get("gyro_bias_walk", {}).get("q", [0.0] * 3), float))
-
-
 def null_walks(cal: Calibration, rests: Rests, gravity: float) -> tuple[np.ndarray, np.ndarray]:
-    """The diagnosis's null model's bias-walk intensities (``walk_intensities``' face): the joint
-    refinement's, with a walk it estimated but did not detect (zero at its 5 % test) estimated at
-    the likelihood's maximum under the fitted calibration instead. Set to zero, a weak walk's
+    """(3,) and (3,): the accelerometer's and the gyro's bias random-walk intensities of the
+    diagnosis's null model: the joint refinement's (zeros without one), with a walk it estimated
+    but did not detect (zero at its 5 % test) estimated at the likelihood's maximum under the
+    fitted calibration instead. Set to zero, a weak walk's
     wander passes for slow misfit (measured: on a standard null, an accelerometer walk of 1e-10
     (m/s^2)^2/s, not detected, made an accelerometer term significant; estimated 5.8e-11, none)."""
     from ..solvers.joint_ml import accel_walk_intensity, gyro_walk_intensity
 
-    q_a, q_g = walk_intensities(cal)
     joint = cal["gyro"].details.get("joint", {})
+    q_a, q_g = (np.asarray(joint.get(f"{s}_bias_walk", {}).get("q", [0.0] * 3), float) for s in ("accel", "gyro"))
     fit_k = bool(joint.get("fitted_temperature_coefficients"))
     if joint.get("gyro_bias_walk", {}).get("estimated") and not q_g.any():
         q_g = gyro_walk_intensity(rests, cal["gyro"], fit_k, None, min_lr=0.0)[0]
