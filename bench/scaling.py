@@ -1,8 +1,10 @@
 """Scaling benchmark: `imupipe run` on 0.5, 1, 2 and 4 h standard sessions beside `imupipe ingest`.
 
 For each length, simulates a standard session (``imupipe simulate standard``, 100 Hz,
-``n_positions`` chosen so the session lasts the given hours; seed 0), then runs, each
-as a whole process as a user runs it:
+``n_positions`` chosen so the session lasts the given hours; seed 0) of the benches'
+consumer-MEMS unit (``residual_nulls.realistic_imu``: gyro and accelerometer bias walks
+the calibration detects at every length), then runs, each as a whole process as a user
+runs it:
 
 * ``imupipe ingest SESSION``: CPU (user + sys), wall, peak resident memory;
 * ``imupipe run SESSION`` (default pipeline, a fresh output directory so nothing is
@@ -13,6 +15,13 @@ the size of the decoded arrays (issue 13's target: <= 3x the arrays + 150 MiB), 
 the fitted log-log slope of run CPU, wall and memory against hours (1.0 = linear) and
 the 4 h / 1 h CPU ratio (target <= 4.5) when both were run.
 
+Each row names the bias walks of the residual map's null model (``walks``). They decide
+the per-sample Jacobian's width: with both walks, every motion sample's row also carries
+the walk states at the motion's two ends (16 entries instead of 4). ``--imu default`` (the
+simulator's unit, no walk) is therefore not a fair scaling series: whether the map
+estimates a tiny walk there depends on the session (measured: none at 1 h, both at 2 h,
+and 8x the Jacobian's entries with them).
+
 Peak memory is each child's own ``ru_maxrss`` (``os.wait4``); this script imports
 nothing heavy itself, so the floor a forked child inherits stays small (printed).
 BLAS runs with imupipe's default (one thread, ``imupipe/threads.py``). Wall clock
@@ -21,7 +30,8 @@ suffers when other processes share the cores; CPU is the steadier measure of wor
 ``--pipeline FILE`` runs another pipeline; ``--without-map`` runs the default one
 without the residual map stage (the calibration's own cost).
 
-Usage: ``python bench/scaling.py [--hours 0.5 1 2 4] [--keep DIR] [--pipeline FILE | --without-map]``
+Usage: ``python bench/scaling.py [--hours 0.5 1 2 4] [--imu realistic|default] [--keep DIR]
+[--pipeline FILE | --without-map]``
 """
 
 from __future__ import annotations
@@ -44,7 +54,9 @@ import numpy as np
 from imupipe.sim import protocols
 from imupipe.sim.api import simulate
 
-hours, out = float(sys.argv[1]), sys.argv[2]
+hours, out, imu = float(sys.argv[1]), sys.argv[2], sys.argv[3]
+sys.path.insert(0, sys.argv[4])
+from residual_nulls import realistic_imu
 
 def duration(n):
     p = protocols.protocol_params("standard", n_positions=n)
@@ -53,7 +65,8 @@ def duration(n):
 # the session's length is affine in n_positions: two probes, then the n closest to the target
 d1, d2 = duration(100), duration(1000)
 n = max(10, round(100 + (hours * 3600 - d1) * 900 / (d2 - d1)))
-simulate("standard", {}, 0, out, True, params={"n_positions": n})
+simulate("standard", {}, 0, out, True, params={"n_positions": n},
+         imu=realistic_imu(0) if imu == "realistic" else None)
 """
 
 ARRAYS = r"""
@@ -100,6 +113,15 @@ def without_map(path: Path) -> Path:
     return path
 
 
+def null_walks(residual_map: Path) -> str:
+    """The bias walks of the map's null model ("gyro+accel", "none"; "-" without a map)."""
+    if not residual_map.exists():
+        return "-"
+    noise = json.loads(residual_map.read_text())["noise_model"]
+    walks = [s for s in ("gyro", "accel") if any(noise.get(f"{s}_bias_walk_sigma", [0.0]))]
+    return "+".join(walks) or "none"
+
+
 def slope(xs: list[float], ys: list[float]) -> float:
     """Least-squares slope of log y against log x."""
     lx, ly = [math.log(x) for x in xs], [math.log(y) for y in ys]
@@ -110,6 +132,8 @@ def slope(xs: list[float], ys: list[float]) -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--hours", type=float, nargs="+", default=[0.5, 1.0, 2.0, 4.0])
+    ap.add_argument("--imu", choices=["realistic", "default"], default="realistic",
+                    help="the simulated unit (default: the benches' realistic one, with bias walks)")
     ap.add_argument("--keep", type=Path, default=None, help="keep sessions and outputs here")
     ap.add_argument("--pipeline", type=Path, default=None, help="pipeline TOML (default: the built-in)")
     ap.add_argument("--without-map", action="store_true",
@@ -125,9 +149,10 @@ def main() -> None:
     rows = []
     try:
         for hours in sorted(args.hours):
-            session = work / f"standard_{hours:g}h.mcap"
+            session = work / f"standard_{args.imu}_{hours:g}h.mcap"
             if not session.exists():
-                measure([sys.executable, "-c", SIMULATE, str(hours), str(session)], env=env)
+                measure([sys.executable, "-c", SIMULATE, str(hours), str(session), args.imu,
+                         str(Path(__file__).resolve().parent)], env=env)
             truth = json.loads(Path(f"{session}.truth.json").read_text())
             n = truth["protocol_params"]["n_positions"]
             dur = truth["n_samples"] / truth["rate_hz"]
@@ -143,7 +168,8 @@ def main() -> None:
             stages = sorted(((v.get("seconds") or 0.0, k) for k, v in manifest["stages"].items()),
                             reverse=True)[:3]
             rows.append({"hours": hours, "n_positions": n, "duration_s": float(dur),
-                         "ingest": ingest, "run": run, "arrays": arrays, "stages": stages})
+                         "ingest": ingest, "run": run, "arrays": arrays, "stages": stages,
+                         "walks": null_walks(out / session.stem / "residual_map.json")})
             print(f"{hours:g} h done: run {run['cpu']:.1f} s CPU, ingest {ingest['cpu']:.2f} s CPU",
                   file=sys.stderr, flush=True)
     finally:
@@ -153,10 +179,10 @@ def main() -> None:
     floor = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     print(f"imupipe run {' '.join(pipeline) or '(default pipeline)'} / ingest as whole processes, "
           "standard sessions at 100 Hz "
-          f"(this script's own peak RSS, the floor of a child's: {floor / MIB:.0f} MiB)")
+          f"of the {args.imu} unit (this script's own peak RSS, the floor of a child's: {floor / MIB:.0f} MiB)")
     print(f"{'hours':>5} {'n_pos':>5} {'min':>4} {'ingest CPU':>10} {'wall':>6} {'MiB':>5} | {'run CPU':>8} "
           f"{'wall':>7} {'peak MiB':>8} | {'run/ingest':>10} {'arrays MiB':>10} {'mem target':>10} | "
-          "slowest stages (wall s)")
+          f"{'walks':>10} | slowest stages (wall s)")
     for r in rows:
         i, u = r["ingest"], r["run"]
         target = 3 * r["arrays"] + 150 * MIB
@@ -164,7 +190,7 @@ def main() -> None:
         print(f"{r['hours']:>5g} {r['n_positions']:>5} {r['duration_s'] / 60:>4.0f} {i['cpu']:>10.2f} {i['wall']:>6.2f} "
               f"{i['rss'] / MIB:>5.0f} | {u['cpu']:>8.1f} {u['wall']:>7.1f} {u['rss'] / MIB:>8.0f} | "
               f"{u['cpu'] / i['cpu']:>9.1f}x {r['arrays'] / MIB:>10.1f} "
-              f"{'ok' if u['rss'] <= target else 'OVER':>10} | {stages}")
+              f"{'ok' if u['rss'] <= target else 'OVER':>10} | {r['walks']:>10} | {stages}")
     if len(rows) >= 2:
         hours = [r["hours"] for r in rows]
         for what, key in (("CPU", "cpu"), ("wall", "wall"), ("peak memory", "rss")):

@@ -495,12 +495,13 @@ class JointModel:
         M_g = self.unpack(x_g)["M_g"]
         gl = self.glob.slices
         slots = np.arange(gl["M_g"].start, gl["b_g"].stop)
-        motion = self.rows.of("turn") | self.rows.of("accel_motion")
+        motion = np.flatnonzero(self.rows.of("turn") | self.rows.of("accel_motion"))
         out = np.zeros((len(self.rows.block), dy.shape[2]))
         for a in range(0, dy.shape[2], len(slots)):
             part = np.einsum("ab,nbk->nak", M_g, dy[:, :, a:a + len(slots)])
             J_g = self.residuals(x_g, x_l, rate_columns=part)[1]
-            out[motion, a:a + part.shape[2]] = J_g[motion][:, slots[:part.shape[2]]]
+            out[motion, a:a + part.shape[2]] = J_g[np.ix_(motion, slots[:part.shape[2]])]  # no row copy of J_g
+            del J_g
         return out
 
     def turn_view(self, x_g: np.ndarray, x_l: np.ndarray) -> dict[str, np.ndarray]:
