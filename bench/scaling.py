@@ -156,11 +156,11 @@ def main() -> None:
             truth = json.loads(Path(f"{session}.truth.json").read_text())
             n = truth["protocol_params"]["n_positions"]
             dur = truth["n_samples"] / truth["rate_hz"]
-            tables = work / f"standard_{hours:g}h.tables"
+            tables = work / f"{session.stem}.tables"
             shutil.rmtree(tables, ignore_errors=True)
             ingest = measure([*imupipe, "ingest", str(session), "--out", str(tables)], env=env)
             arrays = int(measure([sys.executable, "-c", ARRAYS, str(tables)])["stdout"])
-            out = work / f"out_{hours:g}h"
+            out = work / f"out_{session.stem}"
             shutil.rmtree(out, ignore_errors=True)
             run = measure([*imupipe, "run", str(session), "--out", str(out), "--quiet", *pipeline],
                           env=env)

@@ -128,6 +128,13 @@ def weighted(W: sp.spmatrix, D: np.ndarray | RateDerivatives) -> np.ndarray:
     return (W @ D.reshape(len(D), -1)).reshape(W.shape[0], 3, -1)
 
 
+def by_motion(motion: np.ndarray, count: int) -> list[slice]:
+    """Each motion's slice of a ``motion`` index array sorted by motion (empty where it has no
+    sample): a loop over the motions then costs their own samples, not every sample each time."""
+    edges = np.searchsorted(motion, np.arange(count + 1))
+    return [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+
+
 @dataclass(frozen=True)
 class MotionSamples:
     """The gyro samples of m motions, flattened: ``t`` (N,) s, ``y`` (N, 3) raw gyro, ``motion``

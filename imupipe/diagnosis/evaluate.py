@@ -33,7 +33,7 @@ from ..allan import batch_variance_ratio
 from ..models import T_REF_C, TriadCalibration
 from ..observations import Rests, Turns
 from ..solvers.joint_ml import lower_gauge
-from .attitude import Attitude
+from .attitude import Attitude, by_motion
 from .events import Event
 from .forward import JointModel, MotionAccel, Noise, Start
 from .linearised import Linearised, fit
@@ -150,8 +150,7 @@ def displacement(model: JointModel, x_g: np.ndarray, x_l: np.ndarray) -> np.ndar
     omega, _ = model._rates(P, x_l, derivatives=False)
     R = Attitude.integrate(model.quad, omega).rotation_at(model.accel_points)
     a_start = np.einsum("kij,kj->ki", R, a_body)
-    for j in np.unique(acc.motion):
-        sel = acc.motion == j
+    for j, sel in enumerate(by_motion(acc.motion, model.m)):
         t = acc.t[sel]
         if len(t) < 3:
             continue
@@ -275,14 +274,13 @@ def _motion_rates(model: JointModel, omega: np.ndarray, Q: np.ndarray, t: np.nda
     frame) and its derivative, interpolated; zero outside the motions."""
     ms = model.motions
     w_norm, a_norm = np.zeros(len(t)), np.zeros(len(t))
-    for j in range(ms.count):
-        sel = ms.motion == j
+    for sel in by_motion(ms.motion, ms.count):
         tj = ms.t[sel]
         if len(tj) < 2:
             continue
         wj = omega[sel] @ Q
         aj = np.gradient(wj, tj, axis=0)
-        inside = (t >= tj[0]) & (t <= tj[-1])
+        inside = slice(np.searchsorted(t, tj[0], "left"), np.searchsorted(t, tj[-1], "right"))  # t sorted
         w_norm[inside] = np.interp(t[inside], tj, np.linalg.norm(wj, axis=1))
         a_norm[inside] = np.interp(t[inside], tj, np.linalg.norm(aj, axis=1))
     return w_norm, a_norm

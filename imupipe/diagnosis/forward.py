@@ -52,7 +52,7 @@ from ..models import T_REF_C
 from ..observations import Rests, Turns
 from ..rotations import skew
 from ..solvers.triad_covariance import shape_basis
-from .attitude import Attitude, MotionSamples, Points, Quadrature, RateDerivatives
+from .attitude import Attitude, MotionSamples, Points, Quadrature, RateDerivatives, by_motion
 
 _LOWER = shape_basis("lower")  # (6, 3, 3)
 SAMPLE_CHUNK = 8192  # motion samples whose derivatives are formed at once (memory, not speed)
@@ -430,8 +430,7 @@ class JointModel:
         Phi_s = wq[:, None, None] ** 2 * (R @ Sg @ np.swapaxes(R, 1, 2))
         out = []
         qg = float(np.mean(self.q["wg"])) if "wg" in self.walks else 0.0
-        for j in range(self.m):
-            sel = ms.motion == j
+        for j, sel in enumerate(by_motion(ms.motion, self.m)):
             K = self.K[j]
             k = np.clip(np.searchsorted(self.knot_t[j], ms.t[sel], "right") - 1, 0, K - 1)
             Phi = np.zeros((K, 3, 3))
@@ -779,8 +778,9 @@ class JointModel:
         p, q = self.p[j], self.qr[j]
         kidx = np.zeros(k, int)
         mu = np.zeros(k)
-        for jj in np.unique(j):
-            sel = j == jj
+        for jj, sel in enumerate(by_motion(j, self.m)):
+            if sel.stop == sel.start:
+                continue
             kt = self.knot_t[jj]
             ki = np.clip(np.searchsorted(kt, acc.t[sel], "right") - 1, 0, self.K[jj] - 1)
             kidx[sel] = ki

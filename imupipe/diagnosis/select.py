@@ -62,6 +62,7 @@ from ..models import T_REF_C
 from ..rotations import skew
 from ..solvers.blocktri import Bordered
 from ..temperature import SMOOTH_S, rate_curve, temperature_rate
+from .attitude import by_motion
 from .linearised import Linearised
 from .residual_map import benjamini_hochberg
 
@@ -167,12 +168,12 @@ class Signals:
         self.t_on_gyro_motion = ms.t - t_first
         u = sig["gravity_rest"]
         u_g = np.zeros((len(ms.t), 3))  # gravity at the gyro's samples: the accel samples' path, or
-        for j in range(ms.count):  # the rests' directions across a motion without samples
-            sel = ms.motion == j
-            if not sel.any():
+        acc_of = by_motion(acc.motion, ms.count)
+        for j, sel in enumerate(by_motion(ms.motion, ms.count)):  # the rests' directions across a motion
+            if sel.stop == sel.start:                               # without samples
                 continue
-            sa = acc.motion == j if self.has_motion else np.zeros(0, bool)
-            if sa.sum() >= 2:
+            sa = acc_of[j]
+            if sa.stop - sa.start >= 2:
                 u_g[sel] = np.column_stack([np.interp(ms.t[sel], acc.t[sa], sig["gravity_motion"][sa, i])
                                             for i in range(3)])
             else:
@@ -193,11 +194,9 @@ class Signals:
             self.omega = np.zeros((len(acc.t), 3))
             self.alpha = np.zeros((len(acc.t), 3))
             self.f_dot = np.zeros((len(acc.t), 3))
-            for j in np.unique(acc.motion):
-                sel = acc.motion == j
-                gs = ms.motion == j
+            for sel, gs in zip(by_motion(acc.motion, ms.count), by_motion(ms.motion, ms.count), strict=True):
                 tj, wj = ms.t[gs], omega[gs]
-                if len(tj) < 3 or sel.sum() < 3:
+                if len(tj) < 3 or sel.stop - sel.start < 3:
                     continue
                 aj = _derivative(wj, tj)
                 ta = acc.t[sel]

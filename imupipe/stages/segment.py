@@ -240,9 +240,11 @@ class Detection:
             return i0, i1
         h = 5 * p.lowpass_s / 6
         reach = p.window_s / 2 + h
-        seg = self.segment_id == self.segment_id[i0]
-        lo_lim = max(int(np.searchsorted(t, t[i0] - reach, "left")), int(np.argmax(seg)))
-        hi_lim = min(int(np.searchsorted(t, t[i1] + reach, "right")) - 1, len(t) - 1 - int(np.argmax(seg[::-1])))
+        sid = self.segment_id  # non-decreasing: the core's gap-free segment by bisection
+        seg0 = int(np.searchsorted(sid, sid[i0], "left"))
+        seg1 = int(np.searchsorted(sid, sid[i0], "right")) - 1
+        lo_lim = max(int(np.searchsorted(t, t[i0] - reach, "left")), seg0)
+        hi_lim = min(int(np.searchsorted(t, t[i1] + reach, "right")) - 1, seg1)
         ends = []
         # the core's own last `reach` is walked again: under tremor a slow onset hides in it
         mid = (i0 + i1) // 2
@@ -254,11 +256,12 @@ class Detection:
             rng = slice(lo, hi + 1)
             found = []
             for signals, suffix in ((lp, ""), (raw, "_raw")):
-                dev = np.zeros((len(t), 2))
+                dev = np.zeros((hi + 1 - lo, 2))  # the walk's own span, indexed from lo (not the recording)
                 for j, (x, s) in enumerate(zip(signals, ("accel", "gyro"), strict=True)):
-                    dev[rng, j] = np.linalg.norm((x[rng] - x[near].mean(axis=0)) / self.sigma[s + suffix], axis=1)
-                found.append(_edge(dev, edge, (lo - 1) if step < 0 else (hi + 1), step, p.edge_sigma,
-                                   adaptive_calm=self.vibrating))
+                    dev[:, j] = np.linalg.norm((x[rng] - x[near].mean(axis=0)) / self.sigma[s + suffix], axis=1)
+                e_i, x_i = _edge(dev, edge - lo, (-1 if step < 0 else hi + 1 - lo), step, p.edge_sigma,
+                                 adaptive_calm=self.vibrating)
+                found.append((e_i + lo, x_i + lo))
             (e_lp, x_lp), (e_raw, _) = found
             if self.vibrating:
                 ends.append(e_lp)
@@ -410,8 +413,9 @@ def segment(inputs: Mapping[str, pa.Table], params: SegmentParams, solver: Bound
     if "temperature" in inputs:
         tt = inputs["temperature"].column("t_ns").to_numpy()
         TT = inputs["temperature"].column("temperature").to_numpy()
-        temp = np.array([TT[(tt >= a0) & (tt <= b0)].mean() if np.any((tt >= a0) & (tt <= b0))
-                         else np.interp(0.5 * (a0 + b0), tt, TT) for a0, b0 in bounds])
+        j0, j1 = np.searchsorted(tt, bounds[:, 0], "left"), np.searchsorted(tt, bounds[:, 1], "right")
+        temp = np.array([TT[a:b].mean() if b > a else np.interp(0.5 * (a0 + b0), tt, TT)
+                         for a, b, a0, b0 in zip(j0, j1, bounds[:, 0], bounds[:, 1], strict=True)])
     else:
         temp = np.full(len(bounds), np.nan)
     rests = Rests((bounds[:, 0] - t0) * 1e-9, (bounds[:, 1] - t0) * 1e-9, counts["accel"], mean, cov,
