@@ -282,8 +282,10 @@ class Detection:
         t, p = self.t_s, self.p
         holds = sorted(self.holds)
         out: list[tuple[int, int]] = []
+        sid = self.segment_id
         for i0, i1 in holds:
-            if out and i0 <= out[-1][1] + 1:  # grown into each other: no motion seen between
+            # grown into each other (no motion seen between), unless a gap parts them
+            if out and i0 <= out[-1][1] + 1 and sid[i0] == sid[out[-1][1]]:
                 out[-1] = (out[-1][0], max(out[-1][1], i1))
             else:
                 out.append((i0, i1))
@@ -450,7 +452,7 @@ def turns_table(rests: Rests, t_g: np.ndarray, w: np.ndarray, t0: int) -> pa.Tab
 
 
 STAGE = Stage(
-    name="segment_stillness", version="3", func=segment,
+    name="segment_stillness", version="4", func=segment,
     inputs={"accel": "accel", "gyro": "gyro", "mag": "mag", "temperature": "temperature"},
     outputs={"rests": "rests", "turns": "turns", "stillness": "stillness"}, params=SegmentParams,
     optional_inputs=frozenset({"mag", "temperature"}),

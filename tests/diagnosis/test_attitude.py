@@ -8,6 +8,7 @@ from imupipe.diagnosis.attitude import (
     Attitude,
     MotionSamples,
     Quadrature,
+    by_motion,
     left_jacobian,
     segmented_cumsum,
     segmented_scan,
@@ -131,3 +132,12 @@ def test_left_jacobian_small_and_large_angles():
             dR = (quat_to_matrix(quat_exp(a[k] + d)) - quat_to_matrix(quat_exp(a[k] - d))) / (2 * eps) @ R.T
             col = np.array([dR[2, 1], dR[0, 2], dR[1, 0]])
             assert np.allclose(col, J[k][:, i], atol=1e-7)
+
+
+def test_by_motion_slices_are_the_masks_of_sorted_labels():
+    motion = np.array([0, 0, 2, 2, 2, 3, 5])  # motions 1 and 4 without samples
+    slices = by_motion(motion, 6)
+    assert len(slices) == 6
+    for j, sel in enumerate(slices):
+        assert np.array_equal(np.arange(len(motion))[sel], np.flatnonzero(motion == j))
+    assert [s.stop - s.start for s in by_motion(np.zeros(0, int), 2)] == [0, 0]

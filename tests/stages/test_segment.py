@@ -176,3 +176,18 @@ def test_default_pipeline_on_a_static_recording_exits_2_with_the_fix(tmp_path, c
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "static.mcap" in err and "1 rest(s) found, 9 needed" in err
     assert "pipelines/noise.toml" in err
+
+
+def test_a_gap_inside_a_hold_splits_it_and_no_edge_crosses_it(short_holds):
+    _, _, d = short_holds
+    t0 = d["accel"].column("t_ns")[0].as_py()
+    gap = (14.0, 15.0)  # s: 1 s without samples inside the 30-s warm-up (max_gap_s 0.5)
+    cut = {}
+    for name, table in d.items():
+        t = (table.column("t_ns").to_numpy() - t0) * 1e-9
+        cut[name] = table.filter(pa.array((t < gap[0]) | (t > gap[1])))
+    rests = segment.STAGE.func(cut, segment.SegmentParams(), None)["rests"]
+    start, end = rests.column("t_start_s").to_numpy(), rests.column("t_end_s").to_numpy()
+    assert not np.any((start < gap[0]) & (end > gap[1]))
+    before, after = np.flatnonzero(end <= gap[0])[-1], np.flatnonzero(start >= gap[1])[0]
+    assert gap[0] - end[before] < 0.05 and start[after] - gap[1] < 0.05  # each side keeps its samples
