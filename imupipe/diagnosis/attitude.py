@@ -47,11 +47,11 @@ def left_jacobian(a: np.ndarray) -> np.ndarray:
 
 def segmented_scan(q: np.ndarray, seg: np.ndarray) -> np.ndarray:
     """Inclusive ordered products of quaternions ``q`` (n, 4) within runs of equal ``seg`` (n,)
-    (Hillis-Steele: log2(n) vectorised passes)."""
+    (Hillis-Steele: log2 of the longest run's length vectorised passes, not of n)."""
     q = q.copy()
-    n = len(q)
+    longest = int(np.diff(np.flatnonzero(np.r_[True, seg[1:] != seg[:-1], True])).max()) if len(q) else 0
     off = 1
-    while off < n:
+    while off < longest:
         same = seg[off:] == seg[:-off]
         idx = np.flatnonzero(same) + off
         q[idx] = quat_mul(q[idx - off], q[idx])
