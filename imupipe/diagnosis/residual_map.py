@@ -14,9 +14,8 @@ own check: vibrating or interfered rests) forms cells of its own.
 Each cell's upper-tail p-value comes from the chi-square distribution; cells are
 flagged by Benjamini-Hochberg across all cells at ``q``; flagged cells come first,
 strongest evidence first. Change points of the rests' whitened residual series
-(bias jumps; PELT, as ``ruptures``' with its least-squares cost, vectorised, with a penalty for
-few false alarms) and isolated
-events join the map as events.
+(bias jumps; ``ruptures``' PELT with its least-squares cost, vectorised, and a penalty for
+few false alarms) and isolated events join the map as events.
 """
 
 from __future__ import annotations

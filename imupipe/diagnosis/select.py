@@ -167,10 +167,12 @@ class Signals:
         self.T_gyro_motion = model.dT_gyro + T_REF_C
         self.t_on_gyro_motion = ms.t - t_first
         u = sig["gravity_rest"]
-        u_g = np.zeros((len(ms.t), 3))  # gravity at the gyro's samples: the accel samples' path, or
+        # gravity at the gyro's samples: the accel samples' path, or the rests' directions across a
+        # motion without samples
+        u_g = np.zeros((len(ms.t), 3))
         acc_of = by_motion(acc.motion, ms.count)
-        for j, sel in enumerate(by_motion(ms.motion, ms.count)):  # the rests' directions across a motion
-            if sel.stop == sel.start:                               # without samples
+        for j, sel in enumerate(by_motion(ms.motion, ms.count)):
+            if sel.stop == sel.start:
                 continue
             sa = acc_of[j]
             if sa.stop - sa.start >= 2:
