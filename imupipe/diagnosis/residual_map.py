@@ -47,6 +47,7 @@ MIN_BATCHES = 10
 # A cell is tested against chi2/dof = 1.05, not 1: with 1e5 rows a 1 % mismatch of the noise
 # model is "significant" but is no missing physics (the residual sd 0.5 % off).
 EXCESS_MARGIN = 0.05
+LONE_LEVEL = 0.001  # family-wise false-alarm rate of the lone-rest test over one rest series
 
 
 @dataclass(frozen=True)
@@ -302,16 +303,41 @@ def pelt_l2(z: np.ndarray, pen: float, min_size: int = 3) -> list[int]:
     return sorted(bkps[:-1])
 
 
+def lone_rests(z: np.ndarray, level: float = LONE_LEVEL) -> np.ndarray:
+    """Indices of the rests of a whitened rest-mean residual series ``z`` (n, 3) that stand off
+    from both neighbours while the neighbours agree (chi-square tests, Bonferroni over the
+    series at ``level``): a rest that was not still, or a momentary bias jump. A step between
+    rests never qualifies: its neighbours' difference is three times the rest's own statistic."""
+    if len(z) < 3:
+        return np.zeros(0, int)
+    crit = chi2_dist.isf(level / len(z), 3)
+    off = z[1:-1] - 0.5 * (z[:-2] + z[2:])  # variance 1.5 per axis under the model
+    apart = z[:-2] - z[2:]  # variance 2
+    lone = ((off**2).sum(axis=1) / 1.5 > crit) & ((apart**2).sum(axis=1) / 2 <= crit)
+    return np.flatnonzero(lone) + 1
+
+
 def change_points(ev: Evaluation, penalty_sd: float = 4.0) -> list[Event]:
     """Mean shifts in each sensor's rest-mean whitened residual series (bias jumps between
     rests): PELT (``pelt_l2``) on the series, the penalty set so that a pure white series
-    yields a change point rarely; each kept when its step exceeds ``penalty_sd`` standard errors."""
+    yields a change point rarely; each kept when its step exceeds ``penalty_sd`` standard errors.
+    A lone rest (``lone_rests``) is an event of its own and left out of the search (PELT would
+    place a step on each side of it)."""
     lin = ev.lin
     out = []
     for block, sensor in (("gyro_rest", "gyro"), ("accel_rest", "accel")):
         sel = lin.rows.of(block)
         z = lin.r[sel].reshape(-1, 3)
         t = lin.rows.t[sel].reshape(-1, 3)[:, 0]
+        lone = lone_rests(z)
+        for i in lone:
+            off = (z[i] - 0.5 * (z[i - 1] + z[i + 1])) / np.sqrt(1.5)
+            ax = int(np.argmax(np.abs(off)))
+            out.append(Event("lone_rest", sensor, (float(t[i]), float(t[i])),
+                             f"the {sensor} rest at {t[i]:.1f} s stands {abs(off[ax]):.1f} standard errors off "
+                             f"(on {AXES[ax]}) from the rests either side, which agree: it was not still (a slow "
+                             "turn or a knock inside it) or the bias jumped for it alone"))
+        z, t = np.delete(z, lone, axis=0), np.delete(t, lone)
         n = len(z)
         if n < 12:
             continue

@@ -157,7 +157,7 @@ def _edge(x) -> float:
 
 STAGE = Stage(
     name="map_residuals",
-    version="14",
+    version="15",
     func=map_residuals,
     inputs={"accel": "accel", "gyro": "gyro", "temperature": "temperature", "rests": "rests",
             "turns": "turns", "calibration": "calibration", "events": "events", "mag": "mag",
