@@ -307,14 +307,16 @@ def lone_rests(z: np.ndarray, level: float = LONE_LEVEL) -> np.ndarray:
     """Indices of the rests of a whitened rest-mean residual series ``z`` (n, 3) that stand off
     from both neighbours while the neighbours agree (chi-square tests, Bonferroni over the
     series at ``level``): a rest that was not still, or a momentary bias jump. A step between
-    rests never qualifies: its neighbours' difference is three times the rest's own statistic."""
+    rests never qualifies: its neighbours' difference is three times the rest's own statistic.
+    Where the whole series scatters more than the model says (its median neighbour difference
+    beyond chi-square's), the tests take that scatter as their unit: a lone rest stands out
+    from the series, not only from the noise model."""
     if len(z) < 3:
         return np.zeros(0, int)
-    crit = chi2_dist.isf(level / len(z), 3)
-    off = z[1:-1] - 0.5 * (z[:-2] + z[2:])  # variance 1.5 per axis under the model
-    apart = z[:-2] - z[2:]  # variance 2
-    lone = ((off**2).sum(axis=1) / 1.5 > crit) & ((apart**2).sum(axis=1) / 2 <= crit)
-    return np.flatnonzero(lone) + 1
+    off = ((z[1:-1] - 0.5 * (z[:-2] + z[2:])) ** 2).sum(axis=1) / 1.5  # chi-square 3 under the model
+    apart = ((z[:-2] - z[2:]) ** 2).sum(axis=1) / 2
+    crit = chi2_dist.isf(level / len(z), 3) * max(1.0, float(np.median(apart)) / chi2_dist.median(3))
+    return np.flatnonzero((off > crit) & (apart <= crit)) + 1
 
 
 def change_points(ev: Evaluation, penalty_sd: float = 4.0) -> list[Event]:

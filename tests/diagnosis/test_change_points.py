@@ -38,6 +38,8 @@ def test_a_lone_rest_is_found_and_a_step_is_not_one():
     step[150:] += [0.0, 0.0, 12.0]  # a bias jump: every rest after it moves together
     assert len(lone_rests(step)) == 0
     assert pelt_l2(np.delete(bad, lone_rests(bad), axis=0), 3 * 2 * np.log(299)) == []  # no step either side
+    assert len(lone_rests(5 * z)) == 0  # a series that misfits everywhere: judged by its own scatter
+    assert list(lone_rests(5 * bad)) == [120]
 
 
 def test_lone_rests_keep_their_false_alarms_under_the_level():
