@@ -45,11 +45,16 @@ def left_jacobian(a: np.ndarray) -> np.ndarray:
     return np.eye(3) + c1[..., None, None] * K + c2[..., None, None] * (K @ K)
 
 
+def _run_bounds(seg: np.ndarray) -> np.ndarray:
+    """(runs + 1,) where each run of equal ``seg`` (n,) values starts, then n (n > 0)."""
+    return np.flatnonzero(np.r_[True, seg[1:] != seg[:-1], True])
+
+
 def segmented_scan(q: np.ndarray, seg: np.ndarray) -> np.ndarray:
     """Inclusive ordered products of quaternions ``q`` (n, 4) within runs of equal ``seg`` (n,)
     (Hillis-Steele: log2 of the longest run's length vectorised passes, not of n)."""
     q = q.copy()
-    longest = int(np.diff(np.flatnonzero(np.r_[True, seg[1:] != seg[:-1], True])).max()) if len(q) else 0
+    longest = int(np.diff(_run_bounds(seg)).max()) if len(q) else 0
     off = 1
     while off < longest:
         same = seg[off:] == seg[:-off]
@@ -66,7 +71,7 @@ def segmented_cumsum(x: np.ndarray, seg: np.ndarray) -> np.ndarray:
     out = np.empty_like(x)
     if not len(x):
         return out
-    bounds = np.flatnonzero(np.r_[True, seg[1:] != seg[:-1], True])
+    bounds = _run_bounds(seg)
     for a, b in zip(bounds[:-1], bounds[1:], strict=True):
         np.cumsum(x[a:b], axis=0, out=out[a:b])
     return out

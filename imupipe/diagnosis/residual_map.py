@@ -303,20 +303,22 @@ def pelt_l2(z: np.ndarray, pen: float, min_size: int = 3) -> list[int]:
     return sorted(bkps[:-1])
 
 
-def lone_rests(z: np.ndarray, level: float = LONE_LEVEL) -> np.ndarray:
-    """Indices of the rests of a whitened rest-mean residual series ``z`` (n, 3) that stand off
-    from both neighbours while the neighbours agree (chi-square tests, Bonferroni over the
-    series at ``level``): a rest that was not still, or a momentary bias jump. A step between
-    rests never qualifies: its neighbours' difference is three times the rest's own statistic.
+def lone_rests(z: np.ndarray, level: float = LONE_LEVEL) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (k,) of the rests of a whitened rest-mean residual series ``z`` (n, 3) that stand
+    off from both neighbours while the neighbours agree (chi-square tests, Bonferroni over the
+    series at ``level``), and their offsets (k, 3) from the neighbours' mean in standard errors:
+    a rest that was not still, or a momentary bias jump. A step between rests never qualifies:
+    its neighbours' difference is three times the rest's own statistic.
     Where the whole series scatters more than the model says (its median neighbour difference
     beyond chi-square's), the tests take that scatter as their unit: a lone rest stands out
     from the series, not only from the noise model."""
     if len(z) < 3:
-        return np.zeros(0, int)
-    off = ((z[1:-1] - 0.5 * (z[:-2] + z[2:])) ** 2).sum(axis=1) / 1.5  # chi-square 3 under the model
-    apart = ((z[:-2] - z[2:]) ** 2).sum(axis=1) / 2
+        return np.zeros(0, int), np.zeros((0, 3))
+    off = (z[1:-1] - 0.5 * (z[:-2] + z[2:])) / np.sqrt(1.5)  # unit variance per axis under the model
+    apart = ((z[:-2] - z[2:]) ** 2).sum(axis=1) / 2  # chi-square 3, as (off**2).sum(axis=1)
     crit = chi2_dist.isf(level / len(z), 3) * max(1.0, float(np.median(apart)) / chi2_dist.median(3))
-    return np.flatnonzero((off > crit) & (apart <= crit)) + 1
+    lone = np.flatnonzero(((off**2).sum(axis=1) > crit) & (apart <= crit))
+    return lone + 1, off[lone]
 
 
 def change_points(ev: Evaluation, penalty_sd: float = 4.0) -> list[Event]:
@@ -331,9 +333,8 @@ def change_points(ev: Evaluation, penalty_sd: float = 4.0) -> list[Event]:
         sel = lin.rows.of(block)
         z = lin.r[sel].reshape(-1, 3)
         t = lin.rows.t[sel].reshape(-1, 3)[:, 0]
-        lone = lone_rests(z)
-        for i in lone:
-            off = (z[i] - 0.5 * (z[i - 1] + z[i + 1])) / np.sqrt(1.5)
+        lone, offsets = lone_rests(z)
+        for i, off in zip(lone, offsets, strict=True):
             ax = int(np.argmax(np.abs(off)))
             out.append(Event("lone_rest", sensor, (float(t[i]), float(t[i])),
                              f"the {sensor} rest at {t[i]:.1f} s stands {abs(off[ax]):.1f} standard errors off "

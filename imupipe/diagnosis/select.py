@@ -405,7 +405,8 @@ def rigid_walks(lin: Linearised) -> tuple[Bordered, sp.csr_matrix]:
     information and minimum detectable size say how much), it does not hide the term."""
     walk = lin.rows.of("walk_gyro") | lin.rows.of("walk_accel")
     weight = np.repeat(np.where(walk, RIGID, 1.0), np.diff(lin.J_l.indptr))
-    J_l = sp.csr_matrix((lin.J_l.data * weight, lin.J_l.indices, lin.J_l.indptr), shape=lin.J_l.shape)  # shares the pattern
+    # the values scaled, the pattern shared (no second copy of J_l's indices)
+    J_l = sp.csr_matrix((lin.J_l.data * weight, lin.J_l.indices, lin.J_l.indptr), shape=lin.J_l.shape)
     return Bordered(lin.J_g, J_l, lin.model.stages.offsets), J_l
 
 

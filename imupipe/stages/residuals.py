@@ -66,9 +66,9 @@ def null_walks(cal: Calibration, rests: Rests, gravity: float) -> tuple[np.ndarr
     """(3,) and (3,): the accelerometer's and the gyro's bias random-walk intensities of the
     diagnosis's null model: the joint refinement's (zeros without one), with a walk it estimated
     but did not detect (zero at its 5 % test) estimated at the likelihood's maximum under the
-    fitted calibration instead. Set to zero, a weak walk's
-    wander passes for slow misfit (measured: on a standard null, an accelerometer walk of 1e-10
-    (m/s^2)^2/s, not detected, made an accelerometer term significant; estimated 5.8e-11, none)."""
+    fitted calibration instead. Set to zero, a weak walk's wander passes for slow misfit
+    (measured: on a standard null, an accelerometer walk of 1e-10 (m/s^2)^2/s, not detected,
+    made an accelerometer term significant; estimated 5.8e-11, none)."""
     from ..solvers.joint_ml import accel_walk_intensity, gyro_walk_intensity
 
     joint = cal["gyro"].details.get("joint", {})
