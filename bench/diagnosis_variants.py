@@ -6,8 +6,13 @@ Each variant is a null (no omitted physics) of the benches' consumer-MEMS sensor
 (``residual_nulls.realistic_imu``) with one thing changed: rests of 2 s (``gimbal-rest2``,
 ``standard-rest2``), a 200 Hz sensor (``gimbal-200hz``), or a bias instability the model does not
 have (``standard-inst``: ``residual_nulls.INSTABILITY``, first-order Gauss-Markov over 100 s).
+Three more change the recorded streams after the simulator, as real recordings differ from it:
+hand-held rests vibrating at 4-8 Hz (``standard-tremor``, ``sim.tremor``), a knock inside a turn
+(``standard-knock``: a 4 g, 20 ms jolt with a rattle of the gyro that comes back to where it
+started) and flicker noise, whose Allan deviation is flat where a walk's rises (``gimbal-flicker``).
 Prints each session's findings (effect, sensor, regime, p). A right answer is no finding, or for
-the instability an ``unknown`` (a bias instability is outside the catalogue), never a catalogue name.
+the instability, the knock or the flicker an ``unknown`` or a noise-model finding (none of them is
+in the catalogue), never a catalogue name.
 """
 
 from __future__ import annotations
@@ -18,17 +23,66 @@ import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from residual_nulls import PIPELINE, G, realistic_imu, tidy
+import numpy as np
+import pyarrow as pa
+from residual_nulls import INSTABILITY, PIPELINE, G, realistic_imu, tidy
 
+from imupipe.components import Recording
 from imupipe.pipeline.api import run_sessions
-from imupipe.sim.api import simulate
+from imupipe.sim.api import simulate, simulate_recording
+from imupipe.sim.tremor import add_tremor
+from imupipe.writers.mcap import write_mcap
 
 VARIANTS = {  # protocol, protocol parameters, sensor: changes or "instability"
     "gimbal-rest2": ("gimbal", {"rest_s": 2.0}, {}),
     "gimbal-200hz": ("gimbal", {}, {"rate_hz": 200.0}),
     "standard-rest2": ("standard", {"rest_s": 2.0, "reference_rest_s": 4.0}, {}),
     "standard-inst": ("standard", {}, "instability"),
+    "standard-tremor": ("standard", {}, "tremor"),
+    "standard-knock": ("standard", {}, "knock"),
+    "gimbal-flicker": ("gimbal", {}, "flicker"),
 }
+KNOCK = {"accel_g": 4.0, "accel_s": 0.02, "gyro_rad_s": 3.0, "gyro_s": 0.04}
+
+
+def _with_xyz(table: pa.Table, add: np.ndarray) -> pa.Table:
+    for i, c in enumerate("xyz"):
+        table = table.set_column(table.column_names.index(c), c, pa.array(table.column(c).to_numpy() + add[:, i]))
+    return table
+
+
+def knock(streams: dict, turns: list[dict], rng: np.random.Generator) -> dict:
+    """A knock in the middle of the turn nearest the session's middle: a half-sine jolt of the
+    accelerometer and one period of a sine on the gyro (a rattle: no net turn)."""
+    t = (streams["accel"].column("t_ns").to_numpy() - streams["accel"].column("t_ns")[0].as_py()) * 1e-9
+    middle = [0.5 * (s["t_start_s"] + s["t_end_s"]) for s in turns]
+    at = middle[int(np.argmin(np.abs(np.array(middle) - 0.5 * t[-1])))]
+    out = dict(streams)
+    for sensor, amp, width in (("accel", KNOCK["accel_g"] * G, KNOCK["accel_s"]),
+                               ("gyro", KNOCK["gyro_rad_s"], KNOCK["gyro_s"])):
+        u = rng.normal(size=3)
+        phase = np.clip((t - at) / width, 0.0, 1.0)
+        pulse = np.sin(np.pi * phase) if sensor == "accel" else np.sin(2 * np.pi * phase)
+        out[sensor] = _with_xyz(streams[sensor], amp * np.outer(pulse, u / np.linalg.norm(u)))
+    return out
+
+
+def flicker(streams: dict, rng: np.random.Generator) -> dict:
+    """Flicker (1/f) noise on both triads, scaled to an Allan deviation of
+    ``residual_nulls.INSTABILITY``'s sd at 10 s (its floor: flat, unlike a walk's)."""
+    out = dict(streams)
+    for sensor in ("accel", "gyro"):
+        t_ns = streams[sensor].column("t_ns").to_numpy()
+        n, dt = len(t_ns), float(np.median(np.diff(t_ns))) * 1e-9
+        f = np.fft.rfftfreq(n, dt)
+        shape = np.zeros_like(f)
+        shape[1:] = f[1:] ** -0.5
+        x = np.fft.irfft(np.fft.rfft(rng.normal(size=(3, n)), axis=1) * shape, n, axis=1).T
+        m = round(10.0 / dt)
+        means = x[: n // m * m].reshape(-1, m, 3).mean(axis=1)
+        adev = np.sqrt(0.5 * np.mean(np.diff(means, axis=0) ** 2, axis=0))
+        out[sensor] = _with_xyz(streams[sensor], x * (INSTABILITY[sensor]["bias_gm_sd"] / adev))
+    return out
 
 
 def one(args: tuple[str, int, str]) -> tuple[str, int, list | str]:
@@ -38,7 +92,18 @@ def one(args: tuple[str, int, str]) -> tuple[str, int, list | str]:
     if isinstance(sensor, dict):
         imu = imu.model_copy(update=sensor)
     path = Path(folder) / f"{name}-{seed}.mcap"
-    simulate(protocol, {}, seed, path, quiet=True, params=params, imu=imu, env={"gravity_m_s2": G})
+    if sensor in ("tremor", "knock", "flicker"):
+        rec, truth = simulate_recording(protocol, {}, seed, imu=imu, env={"gravity_m_s2": G}, **params)
+        streams, rng = dict(rec.device()), np.random.default_rng([seed, 11])
+        if sensor == "tremor":
+            streams = add_tremor(streams, rng)
+        elif sensor == "knock":
+            streams = knock(streams, truth.segments("turn"), rng)
+        else:
+            streams = flicker(streams, rng)
+        write_mcap(path, Recording(rec.source, {next(iter(rec.devices)): streams}))
+    else:
+        simulate(protocol, {}, seed, path, quiet=True, params=params, imu=imu, env={"gravity_m_s2": G})
     out = Path(folder) / "out"
     try:
         run_sessions([path], PIPELINE[protocol], out, quiet=True, diagnose=True)

@@ -21,8 +21,8 @@ from ..effects.earth_rotation import EARTH_RATE
 from .evaluate import Evaluation
 from .library import structure_cells
 from .residual_map import benjamini_hochberg, windows
-from .select import (BLOCK_S, BOOT_DRAWS, EARTH_IMPLAUSIBLE, HELDOUT_Z, Q_FDR, REVEAL, UNTESTED, VISIBLE_MIN,
-                     Finding, candidates, examine, heldout, rigid_walks, select, theta_cov)
+from .select import (BLOCK_S, BOOT_DRAWS, EARTH_IMPLAUSIBLE, HELDOUT_Z, LONG_BLOCKS, Q_FDR, REVEAL, UNTESTED,
+                     VISIBLE_MIN, Finding, candidates, examine, heldout, rigid_walks, select, theta_cov)
 
 AXES = ("x", "y", "z")
 SD_DRAWS = 400  # draws carrying a term's covariance to its parameters' standard deviations
@@ -48,8 +48,9 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
     level = family_levels(q)
     rigid = rigid_walks(lin)
     tested = [examine(lin, c, rigid) for c in candidates(lin, ev.frame, effects)]
+    misfit = frozenset(c["sensor"] for c in map_unknown_cells(map_doc, level["map"]) if c["variable"] == "all")
     rp, findings, not_confirmed, kept = catalogue_findings(lin, tested, effects, level["catalogue"],
-                                                           latitude_deg=latitude_deg)
+                                                           latitude_deg=latitude_deg, misfit=misfit)
     # structure the accepted terms leave: the generic library tested conditionally on them
     given = np.hstack([f.tested.projected for f in kept]) if kept else None
     left = structure_cells(lin, given, rp, bootstrap=True, level=level["structure"])
@@ -67,7 +68,9 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
     return {"session": session, "findings": findings, **coverage(tested, effects), "not_confirmed": not_confirmed,
             "fdr_q": q, "family_q": level,
             "method": "score tests against the fitted per-sample model (the larger p of chi-square and a wild "
-                      f"bootstrap over {BLOCK_S:g}-s time blocks, {BOOT_DRAWS} draws), "
+                      f"bootstrap over {BLOCK_S:g}-s time blocks, {BOOT_DRAWS} draws; over {LONG_BLOCKS} spans of the "
+                      "recording for a sensor whose noise floor the map finds misfit"
+                      + (f": {', '.join(sorted(misfit))}" if misfit else "") + "), "
                       "Benjamini-Hochberg forward selection with a backward check, held-out proof by "
                       "blocked cross-validation (stretches of time, or rests and motions, each held out in "
                       "turn; the z of the predictive chi2's decrease); q split among the catalogue, the structure "
@@ -75,11 +78,13 @@ def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str =
 
 
 def catalogue_findings(lin, tested: list, effects: dict, q: float = Q_FDR, held_out=heldout,
-                       latitude_deg: float | None = None) -> tuple[np.ndarray, list[dict], list[dict], list[Finding]]:
-    """The selected catalogue terms (``select``, with the recording's latitude when known) that
-    also predict held-out data better (``held_out(lin, rp, finding, others) -> select.HeldOut``):
-    ``(rp, findings, not_confirmed, kept)``, ``rp`` the residual with the nominal model refitted."""
-    rp, accepted = select(lin, tested, q, latitude_deg)
+                       latitude_deg: float | None = None, misfit: frozenset[str] = frozenset()
+                       ) -> tuple[np.ndarray, list[dict], list[dict], list[Finding]]:
+    """The selected catalogue terms (``select``, with the recording's latitude when known and the
+    sensors whose noise floor misfits) that also predict held-out data better
+    (``held_out(lin, rp, finding, others) -> select.HeldOut``): ``(rp, findings, not_confirmed,
+    kept)``, ``rp`` the residual with the nominal model refitted."""
+    rp, accepted = select(lin, tested, q, latitude_deg, misfit)
     findings, not_confirmed, kept = [], [], []
     for i, f in enumerate(accepted):
         doc = _finding(lin, rp, f, accepted[:i] + accepted[i + 1:], effects, held_out)

@@ -34,7 +34,12 @@ the nuisances' Jacobian, through the fit's own block-tridiagonal system), so
 
 A p-value is the larger of the asymptotic (chi-square) one and a wild bootstrap's over 5-s
 time blocks (``wild_p``: the recording's own noise, whatever its colour, without a noise
-model); ``bench/diagnosis.py`` measures how often nulls produce a finding.
+model); ``bench/diagnosis.py`` measures how often nulls produce a finding. Where the residual
+map finds a sensor's noise floor misfit (its ``all`` cell flagged: flicker noise, a bias that
+wanders unlike a walk), that sensor's noise is correlated beyond 5 s and the model does not say
+how far: its candidates' blocks are ``LONG_BLOCKS`` equal spans of the recording instead
+(``time_blocks(lin, long=True)``; measured: on a gimbal null with flicker noise, an
+accelerometer nonlinearity had p 0.001 over 5-s blocks and 0.007 over 120-s ones).
 
 The gyro's scale terms (temperature, asymmetry) act on the rate it senses, so only inside
 motions, through the attitude: most of their evidence is the attitude path's rows, and they are
@@ -74,6 +79,7 @@ WARMUP_TAUS_S = (30.0, 120.0, 600.0)
 NONCENTRALITY_80 = 7.85  # chi2_1 noncentrality for 80 % power at alpha = 0.05
 BLOCK_S = 5.0  # time blocks of the wild bootstrap (rows within a block keep their signs together)
 BOOT_DRAWS = 999
+LONG_BLOCKS = 16  # the wild bootstrap's blocks for a sensor whose noise floor misfits (``time_blocks``)
 RIGID = 1e3  # weight on the walks' increments when the visible fraction is measured (q / 1e6)
 LAG_MIN_S = SMOOTH_S  # s: a shorter fitted thermal lag is the read-out's quantisation
 WHITENED = "whitened"  # a term judged on every row it reaches, whitened (the gyro's inside motions)
@@ -435,9 +441,12 @@ def _score(r: np.ndarray, Cp: np.ndarray, scale: float) -> tuple[float, np.ndarr
     return float(g @ theta) / scale, theta
 
 
-def time_blocks(lin: Linearised) -> np.ndarray:
-    """(N,) the ``BLOCK_S`` time block of every row of the fit: the wild bootstrap's units."""
-    return np.floor(np.nan_to_num(lin.rows.t) / BLOCK_S).astype(np.int64)
+def time_blocks(lin: Linearised, long: bool = False) -> np.ndarray:
+    """(N,) the ``BLOCK_S`` time block of every row of the fit: the wild bootstrap's units;
+    ``long``: ``LONG_BLOCKS`` equal spans of the recording (not shorter than ``BLOCK_S``)."""
+    t = np.nan_to_num(lin.rows.t)
+    block_s = max(BLOCK_S, float(np.ptp(t)) / LONG_BLOCKS) if long and len(t) else BLOCK_S
+    return np.floor(t / block_s).astype(np.int64)
 
 
 def wild_p(Cp: np.ndarray, r: np.ndarray, groups: np.ndarray, draws: int = BOOT_DRAWS) -> float:
@@ -482,18 +491,19 @@ class Finding:
     beyond: str = ""  # a larger term outside the catalogue significant beyond it (``_within_larger``)
 
 
-def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR, latitude_deg: float | None = None
-           ) -> tuple[np.ndarray, list[Finding]]:
+def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR, latitude_deg: float | None = None,
+           misfit: frozenset[str] = frozenset()) -> tuple[np.ndarray, list[Finding]]:
     """Forward selection with BH at each step and a backward check; returns the residual
     with the nominal globals refitted (``rp``) and the accepted findings (theta fitted jointly).
-    ``latitude_deg``: the recording's, when known (``_earth_rivals``)."""
+    ``latitude_deg``: the recording's, when known (``_earth_rivals``); ``misfit``: the sensors
+    whose noise floor the residual map finds misfit (their bootstrap's blocks are long)."""
     z_g, z_l = lin.system.solve(lin.J_g.T @ lin.r, lin.J_l.T @ lin.r)
     rp = lin.r - lin.J_g @ z_g - lin.J_l @ z_l  # the globals refitted too (Gauss-Newton step)
     n_rows = len(rp)
     pool = [t for t in tested if t.visible >= VISIBLE_MIN]
     accepted: list[Finding] = []
 
-    groups = time_blocks(lin)
+    groups = {sensor: time_blocks(lin, long=sensor in misfit) for sensor in ("accel", "gyro")}
 
     def stat(t: Tested, others: list[Finding]) -> tuple[float, float, float]:
         """Score statistic, its p-value (the larger of the asymptotic and the wild bootstrap's)
@@ -508,7 +518,7 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR, latitude_deg
         k = Cp.shape[1]
         bonferroni = max(1, t.candidate.extra_dof)
         p_asym = min(1.0, float(stats.chi2.sf(T, k)) * bonferroni)
-        p = p_asym if p_asym > q else max(p_asym, min(1.0, wild_p(Cp, r, groups) * bonferroni))
+        p = p_asym if p_asym > q else max(p_asym, min(1.0, wild_p(Cp, r, groups[t.candidate.sensor]) * bonferroni))
         return T, p, p_asym
 
     while True:
