@@ -64,7 +64,6 @@ from scipy.signal import savgol_filter
 from ..effects.earth_rotation import EARTH_RATE
 from ..errors import SolverError
 from ..models import T_REF_C
-from ..rotations import skew
 from ..solvers.blocktri import Bordered
 from ..temperature import SMOOTH_S, rate_curve, temperature_rate
 from .attitude import by_motion

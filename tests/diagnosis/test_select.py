@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -14,8 +15,8 @@ from forward_synth import G, joint_model, noise_free_imu, rests_from_truth, smal
 
 from imupipe.diagnosis.forward import MotionAccel
 from imupipe.diagnosis.linearised import fit
-from imupipe.diagnosis.select import (STRETCHES, _gain_z, _leave_one_out, _row_groups, _stretch_of_rows, candidates,
-                                      examine, rigid_walks, select)
+from imupipe.diagnosis.select import (BLOCK_S, LONG_BLOCKS, STRETCHES, _gain_z, _leave_one_out, _row_groups,
+                                      _stretch_of_rows, candidates, examine, rigid_walks, select, time_blocks, wild_p)
 from imupipe.models import T_REF_C
 from imupipe.sim.api import known_effects, simulate_arrays
 from imupipe.sim.sensor import first_order_lag
@@ -160,3 +161,27 @@ def test_one_lever_arm_is_named_and_a_lever_arm_per_axis_is_only_part_of_the_sto
         _, accepted = select(shifted, [examine(shifted, c)])
         assert [f.tested.candidate.effect for f in accepted] == ["lever_arm"]
         assert accepted[0].beyond == beyond
+
+
+def test_long_blocks_keep_flicker_noise_from_passing_for_a_term_and_still_find_one():
+    """Flicker noise (1/f) is correlated far beyond 5 s: over 5-s blocks the wild bootstrap takes
+    its wander along a term that changes every 150 s (as orientations do) for the term, over
+    ``LONG_BLOCKS`` spans it does not; a term of 5 standard errors is still found over them."""
+    t = np.arange(0.0, 1800.0, 0.5)
+    n = len(t)
+    c = np.sign(np.sin(2 * np.pi * t / 300))
+    Cp = (c - c.mean())[:, None]
+    spans = time_blocks(SimpleNamespace(rows=SimpleNamespace(t=t)), long=True)  # what it reads of a fit
+    assert len(np.unique(spans)) == LONG_BLOCKS + 1  # the last sample opens a span of its own
+    short = np.floor(t / BLOCK_S).astype(np.int64)
+    f = np.fft.rfftfreq(n, 0.5)
+    shape = np.r_[0.0, f[1:] ** -0.5]
+    false_short = false_long = found = 0
+    for seed in range(100):
+        rng = np.random.default_rng(seed)
+        pink = np.fft.irfft(np.fft.rfft(rng.normal(size=n)) * shape, n)
+        r = rng.normal(size=n) + 3 * pink / pink.std()
+        false_short += wild_p(Cp, r, short) < 0.01
+        false_long += wild_p(Cp, r, spans) < 0.01
+        found += wild_p(Cp, rng.normal(size=n) + 5 * Cp[:, 0] / np.linalg.norm(Cp), spans) < 0.01
+    assert false_short >= 10 and false_long <= 3 and found >= 80, (false_short, false_long, found)
