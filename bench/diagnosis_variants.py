@@ -106,7 +106,7 @@ def one(args: tuple[str, int, str]) -> tuple[str, int, list | str]:
         write_mcap(path, Recording(rec.source, {next(iter(rec.devices)): streams}))
     else:
         simulate(protocol, {}, seed, path, quiet=True, params=params, imu=imu, env={"gravity_m_s2": G})
-    out = Path(folder) / "out"
+    out = Path(folder) / "out" / path.stem  # its own cache: ``tidy`` removes it while other jobs run
     try:
         run_sessions([path], PIPELINE[protocol], out, quiet=True, diagnose=True)
     except Exception as exc:  # noqa: BLE001 - a bench reports failures and goes on

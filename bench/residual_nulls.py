@@ -69,7 +69,7 @@ def one_run(args: tuple[str, int, dict, str, bool]) -> dict:
     path = folder / f"{protocol}-{seed}-{'-'.join(effects) or 'null'}.mcap"
     simulate(protocol, effects, seed, path, quiet=True, imu=realistic_imu(seed, instability),
              env={"gravity_m_s2": G})
-    out = folder / "out"
+    out = folder / "out" / path.stem  # its own cache: ``tidy`` removes it while other jobs run
     t = time.perf_counter()
     try:
         run_sessions([path], PIPELINE[protocol], out, quiet=True)
