@@ -42,13 +42,19 @@ def map_unknown_cells(map_doc: dict | None, level: float) -> list[dict]:
     return [c for c, f in zip(cells, found, strict=True) if f]
 
 
+def noise_misfit(map_doc: dict | None, q: float = Q_FDR) -> frozenset[str]:
+    """The sensors whose noise floor the map finds misfit: an ``all`` cell of theirs discovered
+    at the map family's level (``select``'s long bootstrap blocks are for them)."""
+    return frozenset(c["sensor"] for c in map_unknown_cells(map_doc, family_levels(q)["map"]) if c["variable"] == "all")
+
+
 def diagnose(ev: Evaluation, map_doc: dict | None, effects: dict, session: str = "", q: float = Q_FDR,
              latitude_deg: float | None = None) -> dict:
     lin = ev.lin
     level = family_levels(q)
     rigid = rigid_walks(lin)
     tested = [examine(lin, c, rigid) for c in candidates(lin, ev.frame, effects)]
-    misfit = frozenset(c["sensor"] for c in map_unknown_cells(map_doc, level["map"]) if c["variable"] == "all")
+    misfit = noise_misfit(map_doc, q)
     rp, findings, not_confirmed, kept = catalogue_findings(lin, tested, effects, level["catalogue"],
                                                            latitude_deg=latitude_deg, misfit=misfit)
     # structure the accepted terms leave: the generic library tested conditionally on them

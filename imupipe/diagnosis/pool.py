@@ -49,8 +49,8 @@ from .diagnose import catalogue_findings, coverage
 from .evaluate import Evaluation
 from .forward import Globals, Rows
 from .linearised import Linearised
-from .select import (BLOCK_S, BOOT_DRAWS, Q_FDR, Candidate, Finding, HeldOut, _sensor_rms, _stretch_of_rows, candidates,
-                     examine, heldout, rigid_walks)
+from .select import (BLOCK_S, BOOT_DRAWS, LONG_BLOCKS, Q_FDR, Candidate, Finding, HeldOut, _sensor_rms,
+                     _stretch_of_rows, candidates, examine, heldout, rigid_walks)
 
 PER_SESSION = ("b_a", "b_g")  # the turn-on bias of each power cycle: never shared
 GAP_S = 60.0  # pooled time between two sessions (beyond any window's or block's reach)
@@ -181,12 +181,14 @@ def _key(c: Candidate) -> tuple:
 
 
 def diagnose_pooled(evaluations: list[Evaluation], effects: dict, sessions: list[str],
-                    q: float = Q_FDR, files: list[str] | None = None, latitude_deg: float | None = None) -> dict:
+                    q: float = Q_FDR, files: list[str] | None = None, latitude_deg: float | None = None,
+                    misfit: frozenset[str] = frozenset()) -> dict:
     """The pooled ``diagnosis.json`` of several sessions of one unit (``sessions``: their names).
     Findings are catalogue terms only (each session's own diagnosis maps its unexplained
     structure); a finding's ``windows`` are seconds from the first sample of the session that
     ``window_sessions`` names at the same place. ``files`` name the sessions in errors
-    (default ``sessions``); ``latitude_deg`` the unit's, when known (``select._earth_rivals``)."""
+    (default ``sessions``); ``latitude_deg`` the unit's, when known (``select._earth_rivals``);
+    ``misfit`` the sensors whose noise floor a session's map finds misfit (``noise_misfit``)."""
     if len(evaluations) < 2:
         raise ImupipeError("a pooled diagnosis needs at least two sessions")
     parts = [ev.lin for ev in evaluations]
@@ -205,7 +207,7 @@ def diagnose_pooled(evaluations: list[Evaluation], effects: dict, sessions: list
     halves = session_halves(lin)
     _, findings, not_confirmed, _ = catalogue_findings(lin, tested, effects, q,
                                                        session_heldout(parts, halves) if by_session else halves,
-                                                       latitude_deg)
+                                                       latitude_deg, misfit)
     for f in findings:
         f["windows"], f["window_sessions"] = _session_windows(lin.model, f["windows"], sessions)
     return {"session": " + ".join(sessions), "sessions": sessions, "findings": findings,
@@ -216,7 +218,9 @@ def diagnose_pooled(evaluations: list[Evaluation], effects: dict, sessions: list
             "method": "the sessions' fitted per-sample models joined: rows stacked, the calibration shared, "
                       "the biases (turn-on) and every nuisance per session; score tests (the larger p of "
                       f"chi-square and a wild bootstrap over {BLOCK_S:g}-s time blocks within each session, "
-                      f"{BOOT_DRAWS} draws), Benjamini-Hochberg forward selection with a backward check, "
+                      f"{BOOT_DRAWS} draws; over {LONG_BLOCKS} spans of the pooled recordings for a sensor whose "
+                      "noise floor a session's map finds misfit" + (f": {', '.join(sorted(misfit))}" if misfit else "")
+                      + "), Benjamini-Hochberg forward selection with a backward check, "
                       + ("held out by session: each session predicted from the others' calibration and "
                          "terms, its own biases and nuisances refitted" if by_session else
                          "blocked cross-validation over each session's halves, each held out in turn")}

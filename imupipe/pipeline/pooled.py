@@ -45,6 +45,7 @@ def diagnose_sessions(sessions: Sequence[Path], pipeline: Path | None = None, ou
     """Diagnose each session, then all of them pooled; returns (the calibration files written,
     the pooled ``diagnosis.json``). Raises ``ImupipeError`` naming the file when the sessions are
     evidently not of one unit (other sensors, a calibration or gravity far from the first's)."""
+    from ..diagnosis.diagnose import noise_misfit
     from ..diagnosis.pool import diagnose_pooled
     from ..stages.residuals import evaluation
 
@@ -79,8 +80,10 @@ def diagnose_sessions(sessions: Sequence[Path], pipeline: Path | None = None, ou
                 raise ImupipeError(f"{session}: {exc}") from exc
             p.advance(task)
         effects = {name: registry.get("effects", name) for name in registry.names("effects")}
+        misfit = frozenset().union(*(noise_misfit(_own(Path(out), sid, "residual_map.json"), node.params.fdr_q)
+                                     for sid in ids))
         doc = diagnose_pooled(evaluations, effects, ids, q=node.params.fdr_q, files=[str(s) for s in sessions],
-                              latitude_deg=node.params.latitude_deg)
+                              latitude_deg=node.params.latitude_deg, misfit=misfit)
         doc["session_files"] = [str(s) for s in sessions]
         doc["bias_walks"] = {sid: {"q_accel": list(a), "q_gyro": list(g)} for sid, (a, g) in zip(ids, walks)}
         doc["single_session"] = _single_session(Path(out), ids, doc)
@@ -133,10 +136,15 @@ def _single_session(out: Path, ids: list[str], doc: dict) -> dict:
     names and, per effect and sensor, the largest visible fraction."""
     single = {}
     for sid in ids:
-        path = out / sid / "diagnosis.json"
-        own = json.loads(path.read_text()) if path.exists() else {"findings": [], "tested": []}
+        own = _own(out, sid, "diagnosis.json") or {"findings": [], "tested": []}
         single[sid] = {"findings": [f["effect"] for f in own["findings"]], "visible_fraction": _visible(own)}
     return single
+
+
+def _own(out: Path, sid: str, name: str) -> dict | None:
+    """A session's own document (``diagnosis.json``, ``residual_map.json``), if it was written."""
+    path = out / sid / name
+    return json.loads(path.read_text()) if path.exists() else None
 
 
 def _visible(doc: dict) -> dict[str, float]:

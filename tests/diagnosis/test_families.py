@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import chi2, norm
 
-from imupipe.diagnosis.diagnose import family_levels, map_unknown_cells
+from imupipe.diagnosis.diagnose import family_levels, map_unknown_cells, noise_misfit
 from imupipe.diagnosis.library import bootstrap_draws
 from imupipe.diagnosis.residual_map import benjamini_hochberg
 
@@ -53,6 +53,18 @@ def test_map_unknowns_are_discovered_at_the_maps_share_not_by_its_own_flags():
     found = map_unknown_cells(strong, family_levels(Q)["map"])
     assert [c["variable"] for c in found] == ["time s"]  # structure cells are tested given the findings
     assert map_unknown_cells(None, Q) == []
+
+
+def test_a_sensor_misfits_when_its_whole_cell_is_discovered_not_one_bin_of_it():
+    def cell(sensor, variable, p):
+        return {"sensor": sensor, "axes": ["x", "y", "z"], "regime": "static", "variable": variable, "p_value": p,
+                "flagged": p < 0.05}
+
+    filler = [cell("gyro", "all", 0.5)] * 9
+    assert noise_misfit({"cells": [cell("accel", "all", 1e-7), *filler]}, Q) == {"accel"}
+    assert noise_misfit({"cells": [cell("accel", "temperature degC", 1e-7), *filler]}, Q) == frozenset()
+    assert noise_misfit({"cells": [cell("accel", "all", 0.003), *filler]}, Q) == frozenset()  # not at the map's share
+    assert noise_misfit(None, Q) == frozenset()
 
 
 def test_the_bootstrap_floor_never_decides_a_structure_discovery():
