@@ -9,8 +9,9 @@ have (``standard-inst``: ``residual_nulls.INSTABILITY``, first-order Gauss-Marko
 Three more change the recorded streams after the simulator, as real recordings differ from it:
 hand-held rests vibrating at 4-8 Hz (``standard-tremor``, ``sim.tremor``), a knock inside a turn
 (``standard-knock``: a 4 g, 20 ms jolt with a rattle of the gyro that comes back to where it
-started) and flicker noise, whose Allan deviation is flat where a walk's rises (``gimbal-flicker``,
-``standard-flicker``).
+started), flicker noise, whose Allan deviation is flat where a walk's rises (``gimbal-flicker``,
+``standard-flicker``), and stamps jittered by a logger (``gimbal-jitter``, ``standard-jitter``:
+0.5 ms sd, one stamp per message of all streams, order kept).
 Prints each session's findings (effect, sensor, regime, p). A right answer is no finding, or for
 the instability, the tremor, the knock or the flicker an ``unknown`` or a noise-model finding (none of them is
 in the catalogue), never a catalogue name.
@@ -43,7 +44,10 @@ VARIANTS = {  # protocol, protocol parameters, sensor: changes or "instability"
     "standard-knock": ("standard", {}, "knock"),
     "gimbal-flicker": ("gimbal", {}, "flicker"),
     "standard-flicker": ("standard", {}, "flicker"),
+    "gimbal-jitter": ("gimbal", {}, "jitter"),
+    "standard-jitter": ("standard", {}, "jitter"),
 }
+JITTER_S = 5e-4  # sd of a logger's stamping delay, s: the samples are uniform, their stamps are not
 KNOCK = {"accel_g": 4.0, "accel_s": 0.02, "gyro_rad_s": 3.0, "gyro_s": 0.04}
 
 
@@ -66,6 +70,20 @@ def knock(streams: dict, turns: list[dict], rng: np.random.Generator) -> dict:
         phase = np.clip((t - at) / width, 0.0, 1.0)
         pulse = np.sin(np.pi * phase) if sensor == "accel" else np.sin(2 * np.pi * phase)
         out[sensor] = _with_xyz(streams[sensor], amp * np.outer(pulse, u / np.linalg.norm(u)))
+    return out
+
+
+def jitter(streams: dict, rng: np.random.Generator) -> dict:
+    """Every stamp late by a random ``JITTER_S``-sd delay (the same for all streams of a sample,
+    kept in order): the readings are where the sensor took them, their stamps are not."""
+    t_ns = streams["accel"].column("t_ns").to_numpy()
+    late = np.abs(rng.normal(0.0, JITTER_S * 1e9, len(t_ns))).astype(np.int64)
+    stamped = np.maximum.accumulate(t_ns + late)
+    stamped[1:] = np.maximum(stamped[1:], stamped[:-1] + 1)  # strictly increasing, as loggers write
+    out = {}
+    for name, table in streams.items():
+        assert np.array_equal(table.column("t_ns").to_numpy(), t_ns), "the simulator stamps all streams alike"
+        out[name] = table.set_column(table.column_names.index("t_ns"), "t_ns", pa.array(stamped))
     return out
 
 
@@ -94,13 +112,15 @@ def one(args: tuple[str, int, str]) -> tuple[str, int, list | str]:
     if isinstance(sensor, dict):
         imu = imu.model_copy(update=sensor)
     path = Path(folder) / f"{name}-{seed}.mcap"
-    if sensor in ("tremor", "knock", "flicker"):
+    if sensor in ("tremor", "knock", "flicker", "jitter"):
         rec, truth = simulate_recording(protocol, {}, seed, imu=imu, env={"gravity_m_s2": G}, **params)
         streams, rng = dict(rec.device()), np.random.default_rng([seed, 11])
         if sensor == "tremor":
             streams = add_tremor(streams, rng)
         elif sensor == "knock":
             streams = knock(streams, truth.segments("turn"), rng)
+        elif sensor == "jitter":
+            streams = jitter(streams, rng)
         else:
             streams = flicker(streams, rng)
         write_mcap(path, Recording(rec.source, {next(iter(rec.devices)): streams}))
