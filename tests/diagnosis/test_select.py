@@ -15,8 +15,9 @@ from forward_synth import G, joint_model, noise_free_imu, rests_from_truth, smal
 
 from imupipe.diagnosis.forward import MotionAccel
 from imupipe.diagnosis.linearised import fit
-from imupipe.diagnosis.select import (BLOCK_S, LONG_BLOCKS, STRETCHES, _gain_z, _leave_one_out, _row_groups,
-                                      _stretch_of_rows, candidates, examine, rigid_walks, select, time_blocks, wild_p)
+from imupipe.diagnosis.select import (BLOCK_S, LONG_BLOCKS, STRETCHES, Candidate, _gain_z, _leave_one_out,
+                                      _row_groups, _stretch_of_rows, candidates, examine, rigid_walks, select,
+                                      time_blocks, wild_p)
 from imupipe.models import T_REF_C
 from imupipe.sim.api import known_effects, simulate_arrays
 from imupipe.sim.sensor import first_order_lag
@@ -150,17 +151,20 @@ def test_a_thermal_lags_column_is_what_the_lagged_read_out_does_to_every_row():
 
 def test_one_lever_arm_is_named_and_a_lever_arm_per_axis_is_only_part_of_the_story(fitted):
     """A size effect (each accelerometer axis at its own point) holds one lever arm inside it: the
-    lever arm is accepted, and the per-axis term's further directions are tested beyond it."""
+    lever arm is accepted, and the per-axis term's further directions are tested beyond it. A
+    term that only takes up part of those directions (here a made-up one: the x axis's offset
+    along y) is not stood behind either."""
     lin = fitted[-1]
     (c,) = [c for c in candidates(lin, np.eye(3), known_effects()) if c.effect == "lever_arm"]
     name, per_axis = c.within
+    inside = Candidate("inside", "accel", "motion", ["d_xy"], per_axis[:, [1]], lambda th: {})
     noise = np.random.default_rng(5).standard_normal(len(lin.r))
     d = 0.01
     for term, beyond in ((c.columns @ [d, -d, d], ""), (per_axis @ (d * np.eye(3).ravel()), name)):
         shifted = dataclasses.replace(lin, r=noise - term)
-        _, accepted = select(shifted, [examine(shifted, c)])
-        assert [f.tested.candidate.effect for f in accepted] == ["lever_arm"]
-        assert accepted[0].beyond == beyond
+        _, accepted = select(shifted, [examine(shifted, c), examine(shifted, inside)])
+        assert [f.tested.candidate.effect for f in accepted] == ["lever_arm", "inside"][:1 + bool(beyond)]
+        assert all(f.beyond == beyond for f in accepted)
 
 
 def test_long_blocks_keep_flicker_noise_from_passing_for_a_term_and_still_find_one():
