@@ -6,15 +6,15 @@ Each variant is a null (no omitted physics) of the benches' consumer-MEMS sensor
 (``residual_nulls.realistic_imu``) with one thing changed: rests of 2 s (``gimbal-rest2``,
 ``standard-rest2``), a 200 Hz sensor (``gimbal-200hz``), or a bias instability the model does not
 have (``standard-inst``: ``residual_nulls.INSTABILITY``, first-order Gauss-Markov over 100 s).
-Three more change the recorded streams after the simulator, as real recordings differ from it:
-hand-held rests vibrating at 4-8 Hz (``standard-tremor``, ``sim.tremor``), a knock inside a turn
-(``standard-knock``: a 4 g, 20 ms jolt with a rattle of the gyro that comes back to where it
-started), flicker noise, whose Allan deviation is flat where a walk's rises (``gimbal-flicker``,
-``standard-flicker``), and stamps jittered by a logger (``gimbal-jitter``, ``standard-jitter``:
-0.5 ms sd, one stamp per message of all streams, order kept).
-Prints each session's findings (effect, sensor, regime, p). A right answer is no finding, or for
-the instability, the tremor, the knock or the flicker an ``unknown`` or a noise-model finding (none of them is
-in the catalogue), never a catalogue name.
+Four more kinds change the recorded streams after the simulator, as real recordings differ from
+it (``AFTER``): hand-held rests vibrating at 4-8 Hz (``standard-tremor``, ``sim.tremor``), a knock
+inside a turn (``standard-knock``: a 4 g, 20 ms jolt with a rattle of the gyro that comes back to
+where it started), flicker noise, whose Allan deviation is flat where a walk's rises
+(``gimbal-flicker``, ``standard-flicker``), and stamps jittered by a logger (``gimbal-jitter``,
+``standard-jitter``: 0.5 ms sd, one stamp per message of all streams, order kept).
+Prints each session's findings (effect, sensor, regime, p) and how many sessions name a catalogue
+effect. A right answer is no finding, or for what is outside the catalogue (the instability and
+the four kinds above) an ``unknown`` or a noise-model finding, never a catalogue name.
 """
 
 from __future__ import annotations
@@ -105,6 +105,14 @@ def flicker(streams: dict, rng: np.random.Generator) -> dict:
     return out
 
 
+AFTER = {  # what each post-processed variant does to the simulator's streams
+    "tremor": lambda streams, truth, rng: add_tremor(streams, rng),
+    "knock": lambda streams, truth, rng: knock(streams, truth.segments("turn"), rng),
+    "flicker": lambda streams, truth, rng: flicker(streams, rng),
+    "jitter": lambda streams, truth, rng: jitter(streams, rng),
+}
+
+
 def one(args: tuple[str, int, str]) -> tuple[str, int, list | str]:
     name, seed, folder = args
     protocol, params, sensor = VARIANTS[name]
@@ -112,17 +120,9 @@ def one(args: tuple[str, int, str]) -> tuple[str, int, list | str]:
     if isinstance(sensor, dict):
         imu = imu.model_copy(update=sensor)
     path = Path(folder) / f"{name}-{seed}.mcap"
-    if sensor in ("tremor", "knock", "flicker", "jitter"):
+    if sensor in AFTER:
         rec, truth = simulate_recording(protocol, {}, seed, imu=imu, env={"gravity_m_s2": G}, **params)
-        streams, rng = dict(rec.device()), np.random.default_rng([seed, 11])
-        if sensor == "tremor":
-            streams = add_tremor(streams, rng)
-        elif sensor == "knock":
-            streams = knock(streams, truth.segments("turn"), rng)
-        elif sensor == "jitter":
-            streams = jitter(streams, rng)
-        else:
-            streams = flicker(streams, rng)
+        streams = AFTER[sensor](dict(rec.device()), truth, np.random.default_rng([seed, 11]))
         write_mcap(path, Recording(rec.source, {next(iter(rec.devices)): streams}))
     else:
         simulate(protocol, {}, seed, path, quiet=True, params=params, imu=imu, env={"gravity_m_s2": G})
