@@ -120,7 +120,7 @@ def one(args: tuple[str, int, str]) -> tuple[str, int, list | str]:
     if isinstance(sensor, dict):
         imu = imu.model_copy(update=sensor)
     path = Path(folder) / f"{name}-{seed}.mcap"
-    if sensor in AFTER:
+    if isinstance(sensor, str) and sensor in AFTER:  # the other strings change the sensor, dicts its fields
         rec, truth = simulate_recording(protocol, {}, seed, imu=imu, env={"gravity_m_s2": G}, **params)
         streams = AFTER[sensor](dict(rec.device()), truth, np.random.default_rng([seed, 11]))
         write_mcap(path, Recording(rec.source, {next(iter(rec.devices)): streams}))
