@@ -64,7 +64,7 @@ from imupipe.sim.api import simulate
 
 import outside_catalogue
 from outside_catalogue import OUTSIDE
-from residual_nulls import PIPELINE, realistic_imu, tidy
+from residual_nulls import PIPELINE, realistic_imu, session_out, tidy
 
 G = 9.80665
 UNIT = np.array([1.0, -1.0, 1.0]) / np.sqrt(3)
@@ -157,7 +157,7 @@ def diagnose(protocol: str, seed: int, effects: dict, folder: Path, tag: str = "
     path = folder / f"{protocol}-{seed}-{name}{tag}.mcap"
     simulate(protocol, effects, seed, path, quiet=True, imu=realistic_imu(seed), env={"gravity_m_s2": G},
              plugins=[outside_catalogue])
-    out = folder / "out" / path.stem  # its own cache: ``tidy`` removes it while other jobs run
+    out = session_out(folder, path)
     t = time.perf_counter()
     run_sessions([path], PIPELINE[protocol], out, quiet=True, diagnose=True)
     doc = json.loads((out / path.stem / "diagnosis.json").read_text())

@@ -1,13 +1,13 @@
 """`imupipe diagnose` on null sessions under variations another simulator may use.
 
-    python bench/diagnosis_variants.py [--seeds 2] [--variants NAME ...] [--jobs 2]
+    python bench/diagnosis_variants.py [--seeds 2] [--first-seed 0] [--variants NAME ...] [--jobs 2]
 
 Each variant is a null (no omitted physics) of the benches' consumer-MEMS sensor
 (``residual_nulls.realistic_imu``) with one thing changed: rests of 2 s (``gimbal-rest2``,
 ``standard-rest2``), a 200 Hz sensor (``gimbal-200hz``), or a bias instability the model does not
 have (``standard-inst``: ``residual_nulls.INSTABILITY``, first-order Gauss-Markov over 100 s).
 Four more kinds change the recorded streams after the simulator, as real recordings differ from
-it (``AFTER``): hand-held rests vibrating at 4-8 Hz (``standard-tremor``, ``sim.tremor``), a knock
+it (the last field of ``VARIANTS``): hand-held rests vibrating at 4-8 Hz (``standard-tremor``, ``sim.tremor``), a knock
 inside a turn (``standard-knock``: a 4 g, 20 ms jolt with a rattle of the gyro that comes back to
 where it started), flicker noise, whose Allan deviation is flat where a walk's rises
 (``gimbal-flicker``, ``standard-flicker``), and stamps jittered by a logger (``gimbal-jitter``,
@@ -27,39 +27,27 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
-from residual_nulls import INSTABILITY, PIPELINE, G, realistic_imu, tidy
+from residual_nulls import INSTABILITY, PIPELINE, G, realistic_imu, session_out, tidy
 
 from imupipe.components import Recording
 from imupipe.pipeline.api import run_sessions
 from imupipe.sim.api import simulate, simulate_recording
-from imupipe.sim.tremor import add_tremor
+from imupipe.sim.tremor import add_tremor, with_added
 from imupipe.writers.mcap import write_mcap
 
-VARIANTS = {  # protocol, protocol parameters, sensor: changes or "instability"
-    "gimbal-rest2": ("gimbal", {"rest_s": 2.0}, {}),
-    "gimbal-200hz": ("gimbal", {}, {"rate_hz": 200.0}),
-    "standard-rest2": ("standard", {"rest_s": 2.0, "reference_rest_s": 4.0}, {}),
-    "standard-inst": ("standard", {}, "instability"),
-    "standard-tremor": ("standard", {}, "tremor"),
-    "standard-knock": ("standard", {}, "knock"),
-    "gimbal-flicker": ("gimbal", {}, "flicker"),
-    "standard-flicker": ("standard", {}, "flicker"),
-    "gimbal-jitter": ("gimbal", {}, "jitter"),
-    "standard-jitter": ("standard", {}, "jitter"),
-}
 JITTER_S = 5e-4  # sd of a logger's stamping delay, s: the samples are uniform, their stamps are not
 KNOCK = {"accel_g": 4.0, "accel_s": 0.02, "gyro_rad_s": 3.0, "gyro_s": 0.04}
 
 
-def _with_xyz(table: pa.Table, add: np.ndarray) -> pa.Table:
-    for i, c in enumerate("xyz"):
-        table = table.set_column(table.column_names.index(c), c, pa.array(table.column(c).to_numpy() + add[:, i]))
-    return table
+def tremor(streams: dict, truth, rng: np.random.Generator) -> dict:
+    """Hand-held rests (``sim.tremor``, its defaults: 1 deg/s and 5 mg at 4-8 Hz)."""
+    return add_tremor(streams, rng)
 
 
-def knock(streams: dict, turns: list[dict], rng: np.random.Generator) -> dict:
+def knock(streams: dict, truth, rng: np.random.Generator) -> dict:
     """A knock in the middle of the turn nearest the session's middle: a half-sine jolt of the
     accelerometer and one period of a sine on the gyro (a rattle: no net turn)."""
+    turns = truth.segments("turn")
     t = (streams["accel"].column("t_ns").to_numpy() - streams["accel"].column("t_ns")[0].as_py()) * 1e-9
     middle = [0.5 * (s["t_start_s"] + s["t_end_s"]) for s in turns]
     at = middle[int(np.argmin(np.abs(np.array(middle) - 0.5 * t[-1])))]
@@ -69,11 +57,11 @@ def knock(streams: dict, turns: list[dict], rng: np.random.Generator) -> dict:
         u = rng.normal(size=3)
         phase = np.clip((t - at) / width, 0.0, 1.0)
         pulse = np.sin(np.pi * phase) if sensor == "accel" else np.sin(2 * np.pi * phase)
-        out[sensor] = _with_xyz(streams[sensor], amp * np.outer(pulse, u / np.linalg.norm(u)))
+        out[sensor] = with_added(streams[sensor], amp * np.outer(pulse, u / np.linalg.norm(u)))
     return out
 
 
-def jitter(streams: dict, rng: np.random.Generator) -> dict:
+def jitter(streams: dict, truth, rng: np.random.Generator) -> dict:
     """Every stamp late by a random ``JITTER_S``-sd delay (the same for all streams of a sample,
     kept in order): the readings are where the sensor took them, their stamps are not."""
     t_ns = streams["accel"].column("t_ns").to_numpy()
@@ -87,7 +75,7 @@ def jitter(streams: dict, rng: np.random.Generator) -> dict:
     return out
 
 
-def flicker(streams: dict, rng: np.random.Generator) -> dict:
+def flicker(streams: dict, truth, rng: np.random.Generator) -> dict:
     """Flicker (1/f) noise on both triads, scaled to an Allan deviation of
     ``residual_nulls.INSTABILITY``'s sd at 10 s (its floor: flat, unlike a walk's)."""
     out = dict(streams)
@@ -101,32 +89,38 @@ def flicker(streams: dict, rng: np.random.Generator) -> dict:
         m = round(10.0 / dt)
         means = x[: n // m * m].reshape(-1, m, 3).mean(axis=1)
         adev = np.sqrt(0.5 * np.mean(np.diff(means, axis=0) ** 2, axis=0))
-        out[sensor] = _with_xyz(streams[sensor], x * (INSTABILITY[sensor]["bias_gm_sd"] / adev))
+        out[sensor] = with_added(streams[sensor], x * (INSTABILITY[sensor]["bias_gm_sd"] / adev))
     return out
 
 
-AFTER = {  # what each post-processed variant does to the simulator's streams
-    "tremor": lambda streams, truth, rng: add_tremor(streams, rng),
-    "knock": lambda streams, truth, rng: knock(streams, truth.segments("turn"), rng),
-    "flicker": lambda streams, truth, rng: flicker(streams, rng),
-    "jitter": lambda streams, truth, rng: jitter(streams, rng),
+VARIANTS = {  # protocol, protocol parameters, sensor changes or "instability", what is done to its streams
+    "gimbal-rest2": ("gimbal", {"rest_s": 2.0}, {}, None),
+    "gimbal-200hz": ("gimbal", {}, {"rate_hz": 200.0}, None),
+    "standard-rest2": ("standard", {"rest_s": 2.0, "reference_rest_s": 4.0}, {}, None),
+    "standard-inst": ("standard", {}, "instability", None),
+    "standard-tremor": ("standard", {}, {}, tremor),
+    "standard-knock": ("standard", {}, {}, knock),
+    "gimbal-flicker": ("gimbal", {}, {}, flicker),
+    "standard-flicker": ("standard", {}, {}, flicker),
+    "gimbal-jitter": ("gimbal", {}, {}, jitter),
+    "standard-jitter": ("standard", {}, {}, jitter),
 }
 
 
 def one(args: tuple[str, int, str]) -> tuple[str, int, list | str]:
     name, seed, folder = args
-    protocol, params, sensor = VARIANTS[name]
+    protocol, params, sensor, after = VARIANTS[name]
     imu = realistic_imu(seed, instability=sensor == "instability")
     if isinstance(sensor, dict):
         imu = imu.model_copy(update=sensor)
     path = Path(folder) / f"{name}-{seed}.mcap"
-    if isinstance(sensor, str) and sensor in AFTER:  # the other strings change the sensor, dicts its fields
+    if after:
         rec, truth = simulate_recording(protocol, {}, seed, imu=imu, env={"gravity_m_s2": G}, **params)
-        streams = AFTER[sensor](dict(rec.device()), truth, np.random.default_rng([seed, 11]))
+        streams = after(dict(rec.device()), truth, np.random.default_rng([seed, 11]))
         write_mcap(path, Recording(rec.source, {next(iter(rec.devices)): streams}))
     else:
         simulate(protocol, {}, seed, path, quiet=True, params=params, imu=imu, env={"gravity_m_s2": G})
-    out = Path(folder) / "out" / path.stem  # its own cache: ``tidy`` removes it while other jobs run
+    out = session_out(folder, path)
     try:
         run_sessions([path], PIPELINE[protocol], out, quiet=True, diagnose=True)
     except Exception as exc:  # noqa: BLE001 - a bench reports failures and goes on
@@ -139,13 +133,14 @@ def one(args: tuple[str, int, str]) -> tuple[str, int, list | str]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=2)
+    ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     folder = args.out or Path(tempfile.mkdtemp(prefix="diagnosis-variants-"))
     folder.mkdir(parents=True, exist_ok=True)
-    jobs = [(name, seed, str(folder)) for name in args.variants for seed in range(args.seeds)]
+    jobs = [(name, seed, str(folder)) for name in args.variants for seed in range(args.first_seed, args.first_seed + args.seeds)]
     named = 0
     with ProcessPoolExecutor(args.jobs) as pool:
         for name, seed, findings in pool.map(one, jobs):

@@ -69,7 +69,7 @@ def one_run(args: tuple[str, int, dict, str, bool]) -> dict:
     path = folder / f"{protocol}-{seed}-{'-'.join(effects) or 'null'}.mcap"
     simulate(protocol, effects, seed, path, quiet=True, imu=realistic_imu(seed, instability),
              env={"gravity_m_s2": G})
-    out = folder / "out" / path.stem  # its own cache: ``tidy`` removes it while other jobs run
+    out = session_out(folder, path)
     t = time.perf_counter()
     try:
         run_sessions([path], PIPELINE[protocol], out, quiet=True)
@@ -80,6 +80,12 @@ def one_run(args: tuple[str, int, dict, str, bool]) -> dict:
     return {"protocol": protocol, "seed": seed, "effects": effects, "seconds": time.perf_counter() - t,
             "blocks": doc["blocks"], "flagged": [c for c in doc["cells"] if c["flagged"]],
             "top": doc["cells"][0] if doc["cells"] else None, "events": doc["events"]}
+
+
+def session_out(folder: Path, path: Path) -> Path:
+    """The out folder of one simulated session: its own, so that ``tidy``ing its cache cannot pull
+    another job's from under it (a shared cache did so with two jobs)."""
+    return Path(folder) / "out" / path.stem
 
 
 def tidy(path: Path, out: Path) -> None:

@@ -502,7 +502,7 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR, latitude_deg
     pool = [t for t in tested if t.visible >= VISIBLE_MIN]
     accepted: list[Finding] = []
 
-    groups = {sensor: time_blocks(lin, long=sensor in misfit) for sensor in ("accel", "gyro")}
+    groups = {long: time_blocks(lin, long) for long in (False, True)}
 
     def stat(t: Tested, others: list[Finding]) -> tuple[float, float, float]:
         """Score statistic, its p-value (the larger of the asymptotic and the wild bootstrap's)
@@ -517,7 +517,8 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR, latitude_deg
         k = Cp.shape[1]
         bonferroni = max(1, t.candidate.extra_dof)
         p_asym = min(1.0, float(stats.chi2.sf(T, k)) * bonferroni)
-        p = p_asym if p_asym > q else max(p_asym, min(1.0, wild_p(Cp, r, groups[t.candidate.sensor]) * bonferroni))
+        blocks = groups[t.candidate.sensor in misfit]
+        p = p_asym if p_asym > q else max(p_asym, min(1.0, wild_p(Cp, r, blocks) * bonferroni))
         return T, p, p_asym
 
     while True:
@@ -599,8 +600,10 @@ def _within_larger(lin: Linearised, accepted: list[Finding], stat, q: float) -> 
         if stat(larger, accepted)[1] <= q:
             f.beyond = name
             for g in accepted:
-                if g is not f and g.tested.candidate.sensor == c.sensor and not g.beyond and stat(
-                        g.tested, [h for h in accepted if h is not g] + [Finding(larger, 0.0, 0.0, 0.0)])[1] > q:
+                if g is f or g.beyond or g.tested.candidate.sensor != c.sensor:
+                    continue
+                others = [h for h in accepted if h is not g] + [Finding(larger, 0.0, 0.0, 0.0)]
+                if stat(g.tested, others)[1] > q:
                     g.beyond = name
 
 

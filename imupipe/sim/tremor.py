@@ -29,7 +29,12 @@ def add_tremor(streams: Mapping[str, pa.Table], rng: np.random.Generator, gyro_d
             f, ph = rng.uniform(*band_hz), rng.uniform(0, 2 * np.pi)
             u = rng.normal(size=3)
             add += amp * np.outer(np.sin(2 * np.pi * f * ts + ph), u / np.linalg.norm(u))
-        for i, c in enumerate("xyz"):
-            t = t.set_column(t.column_names.index(c), c, pa.array(t.column(c).to_numpy() + add[:, i]))
-        out[sensor] = t
+        out[sensor] = with_added(t, add)
     return out
+
+
+def with_added(table: pa.Table, add: np.ndarray) -> pa.Table:
+    """``table`` (a triad's stream) with ``add`` (n, 3) added to its x, y, z."""
+    for i, c in enumerate("xyz"):
+        table = table.set_column(table.column_names.index(c), c, pa.array(table.column(c).to_numpy() + add[:, i]))
+    return table
