@@ -6,15 +6,18 @@ Each variant is a null (no omitted physics) of the benches' consumer-MEMS sensor
 (``residual_nulls.realistic_imu``) with one thing changed: rests of 2 s (``gimbal-rest2``,
 ``standard-rest2``), a 200 Hz sensor (``gimbal-200hz``), or a bias instability the model does not
 have (``standard-inst``: ``residual_nulls.INSTABILITY``, first-order Gauss-Markov over 100 s).
-Four more kinds change the recorded streams after the simulator, as real recordings differ from
+Six more kinds change the recorded streams after the simulator, as real recordings differ from
 it (the last field of ``VARIANTS``): hand-held rests vibrating at 4-8 Hz (``standard-tremor``, ``sim.tremor``), a knock
 inside a turn (``standard-knock``: a 4 g, 20 ms jolt with a rattle of the gyro that comes back to
 where it started), flicker noise, whose Allan deviation is flat where a walk's rises
 (``gimbal-flicker``, ``standard-flicker``), and stamps jittered by a logger (``gimbal-jitter``,
-``standard-jitter``: 0.5 ms sd, one stamp per message of all streams, order kept).
+``standard-jitter``: 0.5 ms sd, one stamp per message of all streams, order kept), white noise
+shared by a triad's three axes (``gimbal-common``, ``standard-common``: as much again as each axis's
+own, a correlation of 0.5), and single-sample glitches of a bus (``gimbal-glitch``,
+``standard-glitch``: one every ``GLITCH_EVERY_S`` per triad, a quarter of its range on one axis).
 Prints each session's findings (effect, sensor, regime, p) and how many sessions name a catalogue
 effect. A right answer is no finding, or for what is outside the catalogue (the instability and
-the four kinds above) an ``unknown`` or a noise-model finding, never a catalogue name.
+the six kinds above) an ``unknown`` or a noise-model finding, never a catalogue name.
 """
 
 from __future__ import annotations
@@ -37,6 +40,9 @@ from imupipe.writers.mcap import write_mcap
 
 JITTER_S = 5e-4  # sd of a logger's stamping delay, s: the samples are uniform, their stamps are not
 KNOCK = {"accel_g": 4.0, "accel_s": 0.02, "gyro_rad_s": 3.0, "gyro_s": 0.04}
+COMMON_SD = {"accel": 0.5e-3 * G, "gyro": np.radians(0.02)}  # the benches' sensor's own white noise per sample
+GLITCH_EVERY_S = 200.0
+GLITCH = {"accel": 2.0 * G, "gyro": np.radians(125.0)}  # a quarter of its range: a high bit flipped
 
 
 def tremor(streams: dict, truth, rng: np.random.Generator) -> dict:
@@ -93,6 +99,29 @@ def flicker(streams: dict, truth, rng: np.random.Generator) -> dict:
     return out
 
 
+def common(streams: dict, truth, rng: np.random.Generator) -> dict:
+    """White noise the same on a triad's three axes (``COMMON_SD``): its axes' noise is correlated,
+    as a shared reference or supply makes it."""
+    out = dict(streams)
+    for sensor, sd in COMMON_SD.items():
+        n = streams[sensor].num_rows
+        out[sensor] = with_added(streams[sensor], np.repeat(rng.normal(0.0, sd, (n, 1)), 3, axis=1))
+    return out
+
+
+def glitch(streams: dict, truth, rng: np.random.Generator) -> dict:
+    """Single samples read wrong on one axis by ``GLITCH`` (either sign), one every
+    ``GLITCH_EVERY_S`` on average per triad, as a bus's read errors do."""
+    out = dict(streams)
+    for sensor, size in GLITCH.items():
+        t_ns = streams[sensor].column("t_ns").to_numpy()
+        add = np.zeros((len(t_ns), 3))
+        k = rng.poisson((t_ns[-1] - t_ns[0]) * 1e-9 / GLITCH_EVERY_S)
+        add[rng.integers(0, len(t_ns), k), rng.integers(0, 3, k)] = size * rng.choice([-1.0, 1.0], k)
+        out[sensor] = with_added(streams[sensor], add)
+    return out
+
+
 VARIANTS = {  # protocol, protocol parameters, sensor changes or "instability", what is done to its streams
     "gimbal-rest2": ("gimbal", {"rest_s": 2.0}, {}, None),
     "gimbal-200hz": ("gimbal", {}, {"rate_hz": 200.0}, None),
@@ -104,6 +133,10 @@ VARIANTS = {  # protocol, protocol parameters, sensor changes or "instability", 
     "standard-flicker": ("standard", {}, {}, flicker),
     "gimbal-jitter": ("gimbal", {}, {}, jitter),
     "standard-jitter": ("standard", {}, {}, jitter),
+    "gimbal-common": ("gimbal", {}, {}, common),
+    "standard-common": ("standard", {}, {}, common),
+    "gimbal-glitch": ("gimbal", {}, {}, glitch),
+    "standard-glitch": ("standard", {}, {}, glitch),
 }
 
 
