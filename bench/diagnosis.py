@@ -43,6 +43,9 @@ scale: shorter lags are rejected as read-out artefacts), and at that size where 
 cannot be seen: in a first-order warm-up the read-out's rate is affine in its temperature, so the
 null's column is absorbed, while a real lag shows as its own start-up after power-on (so it is
 not an "absorbed" case); such a lag is injected once (factor ``-``: not a multiple of an MDE).
+The warm-up transient's time constant (``WARMUP_TAU_S``, 75 s) lies between the selection's grid
+points (``select.WARMUP_TAUS_S``); it is sized by the nearest one's MDE, and its profiled time
+constant counts in the coverage beside its amplitudes.
 """
 
 from __future__ import annotations
@@ -57,7 +60,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from imupipe.diagnosis.select import LAG_MIN_S, NONCENTRALITY_80, VISIBLE_MIN
+from imupipe.diagnosis.select import LAG_MIN_S, NONCENTRALITY_80, VISIBLE_MIN, WARMUP_TAUS_S
 from imupipe.effects.earth_rotation import EARTH_RATE
 from imupipe.pipeline.api import run_sessions
 from imupipe.sim.api import simulate
@@ -126,7 +129,8 @@ TYPICAL = {"gyro_scale_temperature": 300.0,  # ppm/degC: BMI085/088 gyro TCS 0.0
            "accel_scale_temperature": 20.0,  # ppm/degC: the accelerometer's 0.002 %/K (memo E3)
            "bias_temperature_nonlinear": 1e-6,  # rad/s/degC^2: 0.02 deg/s over a 20 K warm-up (memo E14)
            "gyro_g_sensitivity": 0.1 * np.pi / 180 / G}  # rad/s per m/s^2: BMI088's 0.1 deg/s/g (memo E1)
-WARMUP_TAU_S = 120.0  # the injected warm-up transient's time constant (one of select.WARMUP_TAUS_S)
+WARMUP_TAU_S = 75.0  # the injected warm-up transient's time constant: between the selection's grid points
+SIZING_TAU_S = min(WARMUP_TAUS_S, key=lambda tau: abs(np.log(tau / WARMUP_TAU_S)))  # its size: from the nearest's MDE
 LAG_S = 4 * LAG_MIN_S  # the thermal lag's smallest injected size (shorter ones are read-out artefacts)
 NULL_SEEDS = 10_000  # extra null k of seed s is simulated with seed s + k * NULL_SEEDS
 
@@ -186,7 +190,7 @@ def minimum_detectable(null: dict, effects: list[str]) -> dict[str, float]:
     for e in effects:
         for t in null["tested"]:
             if t["effect"] == identifier(e) and t["visible_fraction"] >= VISIBLE_MIN and sensor_of(e, t["sensor"]) \
-                    and t.get("tau_s", WARMUP_TAU_S) == WARMUP_TAU_S:
+                    and t.get("tau_s", SIZING_TAU_S) == SIZING_TAU_S:
                 d = direction(e)
                 lam = d @ np.asarray(t["information"]) @ d
                 mde[e] = min(mde.get(e, np.inf), float(np.sqrt(NONCENTRALITY_80 / lam)) if lam > 0 else np.inf)
@@ -244,8 +248,10 @@ def judged(effect: str, size: float, findings: list[dict], frame: np.ndarray) ->
     truth = np.asarray(effect_params(effect, size)[key], float)
     if identifier(effect) in BODY_VECTORS:
         truth = frame @ truth
-    return out | {"fitted_over_true": fitted_size(effect, f["parameters"]) / size,
-                  "covered": [] if sd is None else covered(f["parameters"][key], sd, truth),
+    hit = [] if sd is None else covered(f["parameters"][key], sd, truth)
+    if identifier(effect) == "warmup_transient":  # its time constant too (profiled)
+        hit += covered(f["parameters"]["tau_s"], f["parameters_sd"].get("tau_s", 0.0), WARMUP_TAU_S)
+    return out | {"fitted_over_true": fitted_size(effect, f["parameters"]) / size, "covered": hit,
                   "heldout_ratio": after / before, "heldout_z": z,
                   "heldout_chi2_n": f.get("heldout_chi2_n_after")}
 

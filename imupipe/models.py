@@ -109,7 +109,8 @@ class Calibration:
     @property
     def model_terms(self) -> list[dict[str, Any]]:
         """The extra terms ``imupipe diagnose`` accepted: ``{"effect", "sensor", "parameters"}``
-        (effects.md names, SI units, the calibration's frame)."""
+        (effects.md names, SI units, the calibration's frame). A term of the ``temperature``
+        sensor (a thermal lag) acts on every triad, along its own ``k``."""
         return list(self.meta.get("model_terms", []))
 
     def predict(self, sensor: str, x: np.ndarray, T: np.ndarray | float | None = None,
@@ -133,7 +134,7 @@ class Calibration:
         return triad.apply(y - self._terms(sensor, y - triad.bias(T), triad.apply(y, T), T, signals), T)
 
     def _terms(self, sensor: str, sensed: np.ndarray, x: np.ndarray, T, signals) -> np.ndarray | float:
-        terms = [t for t in self.model_terms if t.get("sensor") == sensor]
+        terms = [t for t in self.model_terms if t.get("sensor") in (sensor, "temperature")]
         if not terms:
             return 0.0
         from .plugins import make_registry  # the effects are plugins: loaded only when a term is applied

@@ -53,7 +53,7 @@ def test_gyro_scale_and_thermal_lag_terms():
     cal = _calibration([
         {"effect": "gyro_scale_temperature", "sensor": "gyro", "parameters": {"ppm_per_C": ppm.tolist()}},
         {"effect": "gyro_scale_asymmetry", "sensor": "gyro", "parameters": {"eps": eps.tolist()}},
-        {"effect": "thermal_lag", "sensor": "gyro", "parameters": {"tau_s": tau}},
+        {"effect": "thermal_lag", "sensor": "temperature", "parameters": {"tau_s": tau}},
     ])
     y = cal.predict("gyro", w, T, signals={"T_rate": rate})
     sensed = w @ GYRO.S.T
@@ -64,3 +64,10 @@ def test_gyro_scale_and_thermal_lag_terms():
     np.testing.assert_allclose(cal.apply("gyro", y, T, signals={"T_rate": rate}), w, atol=1e-5)
     with pytest.raises(ConfigError, match="'T_rate'"):
         cal.predict("gyro", w, T)
+    # the read-out's lag is the temperature's: it moves every triad's bias along its own k
+    accel = TriadCalibration("accel", ACCEL.M, ACCEL.b0, np.array([1e-3, -2e-3, 5e-4]))
+    lagged = Calibration({"accel": accel}, {"model_terms": [
+        {"effect": "thermal_lag", "sensor": "temperature", "parameters": {"tau_s": tau}}]})
+    f = rng.normal(0, 9.8, (20, 3))
+    np.testing.assert_allclose(lagged.predict("accel", f, T, signals={"T_rate": rate}),
+                               accel.predict(f, T) + tau * np.outer(rate, accel.k), atol=1e-12)

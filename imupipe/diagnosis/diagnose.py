@@ -168,7 +168,7 @@ def _finding(lin, rp: np.ndarray, f: Finding, others: list[Finding], effects: di
         "heldout_rms_before": held.rms_before, "heldout_rms_after": held.rms_after, "heldout_z": held.z,
         "heldout_chi2_n_before": _finite(held.chi2_n_before), "heldout_chi2_n_after": _finite(held.chi2_n_after),
         "visible_fraction": f.tested.visible,
-        "explanation": (f"The {c.sensor} residuals in the {c.regime} rows carry a term the nominal model "
+        "explanation": (f"The {_readings(c.sensor)} residuals in the {c.regime} rows carry a term the nominal model "
                         f"cannot make (score chi2 {f.statistic:.1f} on {f.tested.projected.shape[1]} dof, "
                         f"p = {f.p_value:.2g}); modelled as {words} Held out: RMS {held.rms_before:.4g} -> "
                         f"{held.rms_after:.4g}" + (f", predictive chi2/n {held.chi2_n_before:.4f} -> "
@@ -196,14 +196,17 @@ def _parameter_sd(rp: np.ndarray, f: Finding, others: list[Finding], to_params, 
         except (TypeError, ValueError):
             continue  # a label (the sensor), not a number
         out[name] = _json(np.std([np.asarray(to_params(th)[name], float) for th in sample], axis=0))
+    if f.dtheta_dtau is not None:  # a profiled time constant: its own sd (``select._profile``)
+        out["tau_s"] = f.tau_sd
     return out
 
 
 def _unknown_finding(sensor: str, axes: list, regime: str, windows: list, parameters: dict,
                      statistic: float, p_value: float, explanation: str) -> dict:
-    """A finding no catalogue term explains: where, how strong, and what it correlates with."""
+    """A finding no catalogue term explains: where, how strong, and what it correlates with (its
+    ``description``, effects.md's parameter: the explanation)."""
     return {"effect": "unknown", "sensor": sensor, "axes": list(axes), "regime": regime,
-            "windows": [list(w) for w in windows], "parameters": parameters,
+            "windows": [list(w) for w in windows], "parameters": {"description": explanation, **parameters},
             "significance": {"statistic": statistic, "p_value": p_value, "delta_bic": None},
             "heldout_rms_before": None, "heldout_rms_after": None, "heldout_z": None,
             "explanation": explanation}
@@ -229,7 +232,7 @@ def _ambiguous(doc: dict, rivals: list[str]) -> dict:
     reveal = "; ".join(f"{n}: {REVEAL[n]}" for n in names if n in REVEAL)
     return _not_stood_behind(
         doc, names,
-        f"The {doc['sensor']} residuals in the {doc['regime']} rows carry a term that {' or '.join(names)} "
+        f"The {_readings(doc['sensor'])} residuals in the {doc['regime']} rows carry a term that {' or '.join(names)} "
         f"explains equally well on this recording (each significant in the other's place, neither "
         f"beyond the other): a naming trap it cannot resolve, so neither is stood behind. "
         f"To tell them apart: {reveal or 'a recording that excites them differently'}.")
@@ -239,7 +242,7 @@ def _partial(doc: dict, larger: str) -> dict:
     """A confirmed term a larger one outside the catalogue goes significantly beyond (``Finding.beyond``)."""
     return _not_stood_behind(
         doc, [doc["effect"]],
-        f"{doc['effect']} explains part of the {doc['sensor']} residuals in the {doc['regime']} rows, but "
+        f"{doc['effect']} explains part of the {_readings(doc['sensor'])} residuals in the {doc['regime']} rows, but "
         f"{larger}, outside the catalogue, goes significantly beyond it: the structure is not "
         f"{doc['effect']} alone, so it is not stood behind.")
 
@@ -255,6 +258,11 @@ def _unknown(cell: dict) -> dict:
         f"{where}have chi2/dof {cell['chi2_per_dof']:.2f} and no catalogue "
         "term explains them: look at those windows (an unmodelled disturbance, a knock, a "
         "vibrating support or physics outside the catalogue).")
+
+
+def _readings(sensor: str) -> str:
+    """Whose residuals a term of ``sensor`` moves (a thermal lag's, of the temperature: both triads')."""
+    return "accel and gyro" if sensor == "temperature" else sensor
 
 
 def _edge(x: float | None, infinite: str) -> str:

@@ -166,14 +166,19 @@ def pooled_candidates(parts: list[Linearised], frames: list[np.ndarray], effects
     candidate (None where it has none); the first session's frame names the parameters."""
     per = [{_key(c): c for c in candidates(lin, Q, effects)} for lin, Q in zip(parts, frames)]
     keys = list(dict.fromkeys(k for p in per for k in p))
-    out = []
-    for key in keys:
-        first = next(p[key] for p in per if key in p)
-        cols = [p[key].columns if key in p else np.zeros((len(lin.r), first.columns.shape[1]))
-                for p, lin in zip(per, parts)]
-        out.append((Candidate(first.effect, first.sensor, first.regime, first.names, np.vstack(cols),
-                              first.to_params, first.extra_dof, first.fixed), [p.get(key) for p in per]))
-    return out
+    return [(_stacked(per, parts, key), [p.get(key) for p in per]) for key in keys]
+
+
+def _stacked(per: list[dict], parts: list[Linearised], key: tuple, tau: float | None = None) -> Candidate:
+    """The candidate ``key`` over the pooled rows: each session's columns (zeros where it has none),
+    at the time constant ``tau`` when given (``select._profile`` profiles a pooled one too)."""
+    own = [p.get(key) if tau is None or key not in p else p[key].profile(tau) for p in per]
+    first = next(c for c in own if c is not None)
+    cols = [c.columns if c is not None else np.zeros((len(lin.r), first.columns.shape[1]))
+            for c, lin in zip(own, parts)]
+    return Candidate(first.effect, first.sensor, first.regime, first.names, np.vstack(cols), first.to_params,
+                     first.extra_dof, first.fixed, heldout_sensor=first.heldout_sensor,
+                     profile=partial(_stacked, per, parts, key) if first.profile else None)
 
 
 def _key(c: Candidate) -> tuple:

@@ -53,7 +53,8 @@ here yet: ``UNTESTED`` lists them with the reason.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import NamedTuple
 
 import numpy as np
@@ -74,7 +75,8 @@ VISIBLE_MIN = 0.05
 Q_FDR = 0.05
 STRETCHES = 20  # contiguous stretches of time, each held out in turn
 HELDOUT_Z = 1.645  # one-sided 5 %: a finding must predict held-out data significantly better
-WARMUP_TAUS_S = (30.0, 120.0, 600.0)
+WARMUP_TAUS_S = (30.0, 120.0, 600.0)  # the selection's grid (Bonferroni over it)
+TAU_PROFILE_S = np.geomspace(10.0, 3000.0, 25)  # an accepted warm-up's time constant is profiled over these
 NONCENTRALITY_80 = 7.85  # chi2_1 noncentrality for 80 % power at alpha = 0.05
 BLOCK_S = 5.0  # time blocks of the wild bootstrap (rows within a block keep their signs together)
 BOOT_DRAWS = 999
@@ -127,6 +129,12 @@ class Candidate:
     rejects: object = None  # theta -> why these parameters are not the effect (None: they may be)
     heldout_sensor: str = ""  # the triad whose held-out rows prove it (default: its own)
     within: tuple[str, np.ndarray] | None = None  # a larger term outside the catalogue: (what, columns)
+    profile: object = None  # tau -> the candidate at that time constant (``_profile`` once accepted)
+
+
+def triads(c: Candidate) -> set[str]:
+    """The triads whose readings ``c``'s term moves (a thermal lag's: both, along their ``k``)."""
+    return {"accel", "gyro"} if c.sensor == "temperature" else {c.sensor}
 
 
 @dataclass
@@ -162,15 +170,18 @@ class Signals:
         self.rows_a, self.rows_g = _rows3(lin, "accel_rest"), _rows3(lin, "gyro_rest")
         self.W_a, self.W_g = model.W_a, model.W_g
         t_first = model.mid[0] - 0.5 * model.length[0]
-        self.t_on_rest = model.mid - t_first
+        # time since power-on: from the session's first sample, and from each rest after a power cycle
+        on = np.r_[0.0, model.rests.t_start_s[model.power_on]]
+        since_on = lambda t: t - on[np.searchsorted(on, t, "right") - 1]  # noqa: E731
+        self.t_on_rest = since_on(model.mid)
         acc, ms = model.accel, model.motions
         self.rows_m = _rows3(lin, "accel_motion")
         self.has_motion = len(acc.t) > 0
         self.has_gyro_motion = len(ms.t) > 0
         self.T_motion = model.dT_acc + T_REF_C
-        self.t_on_motion = acc.t - t_first
+        self.t_on_motion = since_on(acc.t)
         self.T_gyro_motion = model.dT_gyro + T_REF_C
-        self.t_on_gyro_motion = ms.t - t_first
+        self.t_on_gyro_motion = since_on(ms.t)
         u = sig["gravity_rest"]
         # gravity at the gyro's samples: the accel samples' path, or the rests' directions across a
         # motion without samples
@@ -322,15 +333,17 @@ def candidates(lin: Linearised, frame: np.ndarray, registry) -> list[Candidate]:
                              lambda th: {"eps": list(th)}, heldout_sensor=WHITENED))
     if "thermal_lag" in eff:
         # the biases follow the die, k (T_die - 25), the model the read-out: both triads read
-        # k tau dT_read/dt more (one tau); named after the triad that carries more of it
+        # k tau dT_read/dt more (one tau). Its sensor is the temperature's (effects.md); its
+        # held-out RMS is in the units of the triad that carries more of it
         rate_at = {"rest": s.T_rate_rest, "motion": s.T_rate_motion, "gyro_motion": s.T_rate_gyro_motion}
         parts = {sensor: term(sensor, lambda at, sensor=sensor: eff["thermal_lag"].regressors(
             {"k": s.k[sensor], "T_rate": rate_at[at]})) for sensor in ("accel", "gyro")}
         sensor = max(parts, key=lambda x: float(np.linalg.norm(parts[x])))
         C = parts["accel"] + parts["gyro"]
         tau_of = _lag_of(lin, C, sensor)
-        out.append(Candidate("thermal_lag", sensor, "static", ["tau_s"], C, lambda th: {"tau_s": tau_of(th)},
-                             rejects=lambda th: _not_a_lag(tau_of(th))))
+        out.append(Candidate("thermal_lag", "temperature", "static", ["tau_s"], C,
+                             lambda th: {"tau_s": tau_of(th)}, rejects=lambda th: _not_a_lag(tau_of(th)),
+                             heldout_sensor=sensor))
     if "earth_rotation" in eff:
         # at rest Earth's rate has a vertical part along gravity (Omega sin(lat), the same in every
         # rest: an isotropic g-sensitivity G = (Omega sin(lat) / g) I) and a horizontal part that
@@ -344,14 +357,14 @@ def candidates(lin: Linearised, frame: np.ndarray, registry) -> list[Candidate]:
         out.append(Candidate("earth_rotation", "gyro", "static", ["Omega_sin_lat"], s.gyro_term(vertical),
                              _latitude))
     if "warmup_transient" in eff:
-        for sensor in ("accel", "gyro"):
-            for tau in WARMUP_TAUS_S:
-                p = {"amp": [0, 0, 0], "tau_s": tau, "sensor": sensor}
-                C = term(sensor, lambda at, p=p: eff["warmup_transient"].regressors({"t_on": t_on_at[at]}, p))
-                out.append(Candidate("warmup_transient", sensor, "warmup", ["amp_x", "amp_y", "amp_z"], C,
-                                     lambda th, sensor=sensor, tau=tau: {"amp": list(th), "tau_s": tau,
-                                                                         "sensor": sensor},
-                                     extra_dof=len(WARMUP_TAUS_S), fixed={"tau_s": tau}))
+        def warmup(sensor: str, tau: float) -> Candidate:
+            p = {"amp": [0, 0, 0], "tau_s": tau, "sensor": sensor}
+            C = term(sensor, lambda at: eff["warmup_transient"].regressors({"t_on": t_on_at[at]}, p))
+            return Candidate("warmup_transient", sensor, "warmup", ["amp_x", "amp_y", "amp_z"], C,
+                             lambda th: {"amp": list(th), "tau_s": tau, "sensor": sensor},
+                             extra_dof=len(WARMUP_TAUS_S), fixed={"tau_s": tau}, profile=partial(warmup, sensor))
+
+        out += [warmup(sensor, tau) for sensor in ("accel", "gyro") for tau in WARMUP_TAUS_S]
     return [c for c in out if np.any(c.columns)]
 
 
@@ -488,6 +501,8 @@ class Finding:
     p_asymptotic: float = float("nan")  # chi-square's, before the bootstrap's floor of 1/(draws + 1)
     rivals: list[str] = field(default_factory=list)  # effects that explain it as well (``_rivals``)
     beyond: str = ""  # a larger term outside the catalogue significant beyond it (``_within_larger``)
+    tau_sd: float = 0.0  # a profiled time constant's 1-sigma (``_profile``)
+    dtheta_dtau: np.ndarray | None = None  # theta's change per second of it
 
 
 def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR, latitude_deg: float | None = None,
@@ -517,7 +532,7 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR, latitude_deg
         k = Cp.shape[1]
         bonferroni = max(1, t.candidate.extra_dof)
         p_asym = min(1.0, float(stats.chi2.sf(T, k)) * bonferroni)
-        blocks = groups[t.candidate.sensor in misfit]
+        blocks = groups[bool(triads(t.candidate) & misfit)]
         p = p_asym if p_asym > q else max(p_asym, min(1.0, wild_p(Cp, r, blocks) * bonferroni))
         return T, p, p_asym
 
@@ -548,6 +563,9 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR, latitude_deg
     _earth_or_g(accepted, pool, stat, n_rows)
     _rivals(accepted, tested, stat, q)  # a rival too faint to be named can still explain it as well
     _within_larger(lin, accepted, stat, q)
+    for f in accepted:
+        if f.tested.candidate.profile is not None:
+            _profile(lin, f, [g for g in accepted if g is not f], rp)
     if accepted:
         A = np.hstack([f.tested.projected for f in accepted])
         theta = -np.linalg.lstsq(A, rp, rcond=None)[0]  # r(theta) = rp + A theta, minimised
@@ -558,6 +576,42 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR, latitude_deg
             o += k
     _earth_rivals(accepted, pool, rp, latitude_deg)
     return rp, accepted
+
+
+def _profile(lin: Linearised, f: Finding, others: list[Finding], rp: np.ndarray) -> None:
+    """An accepted term's time constant profiled (in place): its score given ``others`` over
+    ``TAU_PROFILE_S``, the maximum refined by Newton steps in log tau, the term re-examined there.
+    The selection's grid (Bonferroni over it) is what its p-value stands on; this is its estimate,
+    with the 1-sigma where the score has dropped by 1 (the profile likelihood's) and the linear
+    parameters' change per second of tau, which widens their sd (``theta_cov``)."""
+    A = np.hstack([g.tested.projected for g in others]) if others else None
+    r = _orth(rp, A)
+    c = f.tested.candidate
+    rows = np.any(c.columns != 0, axis=1)
+    scale = max(1.0, float(r[rows] @ r[rows]) / max(int(rows.sum()) - c.columns.shape[1], 1))
+
+    def score(tau: float) -> tuple[float, np.ndarray]:
+        return _score(r, _orth(project(lin, c.profile(tau).columns)[0], A), scale)
+
+    x = np.log(TAU_PROFILE_S)
+    x_hat = float(x[np.argmax([score(tau)[0] for tau in TAU_PROFILE_S])])
+    d, curvature = 0.05, 0.0
+    for _ in range(4):  # Newton in log tau on central differences: the maximum and its curvature
+        T_lo, T_0, T_hi = (score(float(np.exp(x_hat + e)))[0] for e in (-d, 0.0, d))
+        curvature = (T_hi + T_lo - 2 * T_0) / (2 * d * d)
+        if curvature >= 0:
+            break
+        step = float(np.clip(-(T_hi - T_lo) / (4 * d * curvature), -0.12, 0.12))
+        x_hat += step
+        if abs(step) < 0.01:
+            break
+    tau = float(np.exp(x_hat))
+    # the score is twice the log-likelihood gained: tau's 1-sigma is where it has dropped by 1 (a
+    # profile that does not bend down leaves tau undetermined: its sd is tau itself)
+    f.tau_sd = tau / np.sqrt(-curvature) if curvature < 0 else tau
+    h = 1e-3 * tau
+    f.dtheta_dtau = -(score(tau + h)[1] - score(tau - h)[1]) / (2 * h)  # theta = -score's (``select``)
+    f.tested = replace(examine(lin, c.profile(tau)), visible=f.tested.visible)
 
 
 def _rivals(accepted: list[Finding], pool: list[Tested], stat, q: float) -> None:
@@ -637,7 +691,10 @@ def theta_cov(rp: np.ndarray, f: Finding, others: list[Finding]) -> np.ndarray:
     rows = np.any(f.tested.candidate.columns != 0, axis=1)
     left = rp - A @ np.linalg.lstsq(A, rp, rcond=None)[0]
     scale = max(1.0, float(left[rows] @ left[rows]) / max(int(rows.sum()) - k, 1))
-    return np.linalg.pinv(A.T @ A)[-k:, -k:] * scale
+    cov = np.linalg.pinv(A.T @ A)[-k:, -k:] * scale
+    if f.dtheta_dtau is not None:  # a profiled time constant's uncertainty carried to theta
+        cov = cov + f.tau_sd ** 2 * np.outer(f.dtheta_dtau, f.dtheta_dtau)
+    return cov
 
 
 def _earth_rivals(accepted: list[Finding], pool: list[Tested], rp: np.ndarray,

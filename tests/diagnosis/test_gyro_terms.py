@@ -85,15 +85,22 @@ def test_a_thermal_lag_is_named_not_a_warm_up_and_its_time_constant_fitted():
     tau = 4 * LAG_MIN_S
     doc, ev = _diagnosis({"thermal_lag": {"tau_s": tau}})
     assert [f["effect"] for f in doc["findings"]] == ["thermal_lag"], doc["findings"]
+    assert doc["findings"][0]["sensor"] == "temperature"  # effects.md: the read-out lags
     # the k the lag biased is refitted with the term; what is left is second order in tau / tau_T
     assert abs(doc["findings"][0]["parameters"]["tau_s"] - tau) < 0.1 * tau
 
 
-def test_a_warm_up_transient_is_named_not_a_thermal_lag(null):
+def test_a_warm_up_transient_is_named_not_a_thermal_lag_and_its_time_constant_fitted(null):
+    # a time constant between the selection's grid points (30 and 120 s): profiled, not the grid's
+    tau = 50.0
     a, se, d = _size_and_error(null, "warmup_transient", 30.0)
-    doc, _ = _diagnosis({"warmup_transient": {"amp": list(a * d), "tau_s": 30.0, "sensor": "gyro"}})
+    doc, _ = _diagnosis({"warmup_transient": {"amp": list(a * d), "tau_s": tau, "sensor": "gyro"}})
     assert [f["effect"] for f in doc["findings"]] == ["warmup_transient"], doc["findings"]
     assert not [f for f in doc["not_confirmed"] if f["effect"] == "thermal_lag"]
+    p, sd = doc["findings"][0]["parameters"], doc["findings"][0]["parameters_sd"]
+    assert 0 < sd["tau_s"] < 0.5 * tau and abs(p["tau_s"] - tau) < 3 * sd["tau_s"]
+    amp, amp_sd = np.asarray(p["amp"]), np.asarray(sd["amp"])
+    assert np.all(np.abs(amp - a * d) < 3 * amp_sd)
 
 
 def test_a_clipping_gyro_is_reported_as_saturation_not_as_physics(null):
