@@ -200,7 +200,8 @@ class Signals:
                 u_g[sel] = (1 - lam) * u[model.p[j]] + lam * u[model.qr[j]]
         self.f_gyro_motion = g * u_g / np.maximum(np.linalg.norm(u_g, axis=1, keepdims=True), 1e-12)
         omega, _ = model._rates(P, lin.x_l, derivatives=False)  # (N_g, 3) calibrated, model frame
-        self.x_gyro_motion = omega @ np.linalg.inv(P["M_g"]).T  # the same in the gyro's axes (sensed)
+        self.S_g = np.linalg.inv(P["M_g"])  # model frame -> the gyro's raw axes
+        self.x_gyro_motion = omega @ self.S_g.T  # the same in the gyro's axes (sensed)
         self.k = {"accel": P["k_a"], "gyro": P["k_g"]}
         t_last = max(model.rests.t_end_s[-1], ms.t[-1] if len(ms.t) else -np.inf)
         curve = temperature_curve(model, t_first, t_last)
@@ -349,10 +350,11 @@ def candidates(lin: Linearised, frame: np.ndarray, registry) -> list[Candidate]:
         # rest: an isotropic g-sensitivity G = (Omega sin(lat) / g) I) and a horizontal part that
         # turns with the heading, which no rest fixes (left to the bias walk). One column, against
         # the nine of gyro_g_sensitivity: the selection names whichever explains the rests
-        # with fewer parameters.
+        # with fewer parameters. The gyro senses it as an input: through its scale matrix.
         def vertical(at: str) -> np.ndarray:
             up = f_at[at] / np.maximum(np.linalg.norm(f_at[at], axis=1, keepdims=True), 1e-12)
-            return eff["earth_rotation"].regressors({"north": np.zeros_like(up), "up": up})[:, :, 1:]
+            R = eff["earth_rotation"].regressors({"north": np.zeros_like(up), "up": up})[:, :, 1:]
+            return np.einsum("ij,njk->nik", s.S_g, R)
 
         out.append(Candidate("earth_rotation", "gyro", "static", ["Omega_sin_lat"], s.gyro_term(vertical),
                              _latitude))

@@ -18,6 +18,7 @@ from imupipe.diagnosis.linearised import fit
 from imupipe.diagnosis.select import (BLOCK_S, LONG_BLOCKS, STRETCHES, Candidate, _gain_z, _leave_one_out,
                                       _row_groups, _stretch_of_rows, candidates, examine, rigid_walks, select,
                                       time_blocks, wild_p)
+from imupipe.effects.earth_rotation import EARTH_RATE
 from imupipe.models import T_REF_C
 from imupipe.sim.api import known_effects, simulate_arrays
 from imupipe.sim.sensor import first_order_lag
@@ -32,10 +33,10 @@ EFFECTS = {
 }
 
 
-@pytest.mark.parametrize("effect", sorted(EFFECTS))
-def test_a_terms_column_is_what_the_term_does_to_every_row(fitted, effect):
+def _response(fitted, effect: str, params: dict) -> tuple:
+    """The fitted model's residual change when the simulator applies ``effect`` to the readings,
+    and the term's candidate."""
     imu, out, truth, model, rests, turns, lin = fitted
-    params = EFFECTS[effect]
     out2, truth2 = simulate_arrays("gimbal", {effect: params}, SEED, imu=imu, env={"gravity_m_s2": G},
                                    grid_deg=60.0, rest_s=2.0, step_s=1.5, n_rotations=6, rotation_s=2.0)
     rests2, turns2 = rests_from_truth(out2, truth2)
@@ -47,6 +48,13 @@ def test_a_terms_column_is_what_the_term_does_to_every_row(fitted, effect):
     dr = m2.residuals(lin.x_g, lin.x_l)[0] - lin.r
     sensor = params.get("sensor", "accel" if effect.startswith("accel") else "gyro")
     (c,) = [c for c in candidates(lin, np.eye(3), known_effects()) if (c.effect, c.sensor) == (effect, sensor)]
+    return lin, dr, c
+
+
+@pytest.mark.parametrize("effect", sorted(EFFECTS))
+def test_a_terms_column_is_what_the_term_does_to_every_row(fitted, effect):
+    params = EFFECTS[effect]
+    lin, dr, c = _response(fitted, effect, params)
     theta = np.ravel(next(v for k, v in params.items() if k != "sensor"))
     predicted = -c.columns @ theta  # the term in the readings: the residual grows by it
     motion = ~(lin.rows.of("accel_rest") | lin.rows.of("gyro_rest"))
@@ -54,6 +62,15 @@ def test_a_terms_column_is_what_the_term_does_to_every_row(fitted, effect):
     assert np.linalg.norm(dr - predicted) < 0.02 * np.linalg.norm(dr)
     t = examine(lin, c, rigid_walks(lin))
     assert 0 <= t.visible <= 1 and t.mde > 0
+
+
+def test_earths_rate_is_sensed_through_the_gyros_scale_matrix(fitted):
+    """Earth's rate is an input of the gyro: its column goes through the scale matrix (a few %
+    from unity on this unit), as the simulator applies it. At the pole all of it is vertical."""
+    lin, dr, c = _response(fitted, "earth_rotation", {"latitude_deg": 90.0})
+    S_g = np.linalg.inv(lin.model.unpack(lin.x_g)["M_g"])
+    assert np.abs(S_g - np.eye(3)).max() > 0.01
+    assert np.linalg.norm(dr + c.columns[:, 0] * EARTH_RATE) < 0.002 * np.linalg.norm(dr)
 
 
 def test_held_out_stretches_are_whole_rests_and_motions_contiguous_in_time(fitted):
