@@ -35,7 +35,7 @@ from ..observations import Rests, Turns
 from ..solvers.joint_ml import lower_gauge
 from .attitude import Attitude, by_motion
 from .events import Event
-from .forward import JointModel, MotionAccel, Noise, Start
+from .forward import JointModel, MotionAccel, Noise, Start, rest_temperature
 from .linearised import Linearised, fit
 
 TRANSLATION_M = 0.15  # a motion that moves the unit further than this is a carry, not a rotation
@@ -196,7 +196,8 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
     power = power_on_rests(rests, t_a)
     # the temperature coefficients count among the calibration's parameters (leverage, and what a
     # candidate term is projected off) where the rests span enough temperature to determine them
-    T = rests.temperature
+    # (the stream's, as the model reads it: a pipeline's segmentation may not have been given it)
+    T = rest_temperature(rests, temperature)
     thermal = bool(np.all(np.isfinite(T)) and len(T) and np.ptp(T) >= THERMAL_SPAN_C)
 
     def build(sampled_turns: np.ndarray, like: JointModel | None = None) -> JointModel:

@@ -142,6 +142,21 @@ class Start:
     sigma_k: np.ndarray = field(default_factory=lambda: np.full(6, np.inf))
 
 
+def rest_temperature(rests: Rests, temperature: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """(n,) degC: each rest's mean temperature (the regressor of a mean reading); from the
+    temperature stream ``(t, T)`` when given (averaged over the rest), else the rests' own
+    (``T_REF_C`` where they have none: no temperature term)."""
+    if temperature is None or not len(temperature[0]):
+        return np.where(np.isfinite(rests.temperature), rests.temperature, T_REF_C)
+    t, T = temperature
+    c = np.concatenate([[0.0], np.cumsum(T)])
+    i0 = np.searchsorted(t, rests.t_start_s, "left")
+    i1 = np.searchsorted(t, rests.t_end_s, "right")
+    inside = i1 > i0
+    mean = np.divide(c[i1] - c[i0], i1 - i0, out=np.zeros(len(rests)), where=inside)
+    return np.where(inside, mean, np.interp(0.5 * (rests.t_start_s + rests.t_end_s), t, T))
+
+
 # --------------------------------------------------------------------------- layout
 
 
@@ -339,17 +354,8 @@ class JointModel:
         return np.interp(t, self.mid[ok], T[ok])
 
     def rest_temperature(self) -> np.ndarray:
-        """(n,) degC: each rest's mean temperature (the regressor of a mean reading); from the
-        temperature stream when given (averaged over the rest), else the rests' own."""
-        if self._temperature is None or not len(self._temperature[0]):
-            return np.where(np.isfinite(self.rests.temperature), self.rests.temperature, T_REF_C)
-        t, T = self._temperature
-        c = np.concatenate([[0.0], np.cumsum(T)])
-        i0 = np.searchsorted(t, self.rests.t_start_s, "left")
-        i1 = np.searchsorted(t, self.rests.t_end_s, "right")
-        inside = i1 > i0
-        mean = np.divide(c[i1] - c[i0], i1 - i0, out=np.zeros(self.n), where=inside)
-        return np.where(inside, mean, np.interp(self.mid, t, T))
+        """(n,) degC: each rest's mean temperature (``rest_temperature``)."""
+        return rest_temperature(self.rests, self._temperature)
 
     def accel_prediction(self, P: dict, f: np.ndarray, t: np.ndarray,
                          walk: np.ndarray | None = None) -> np.ndarray:

@@ -157,7 +157,7 @@ def _edge(x) -> float:
 
 STAGE = Stage(
     name="map_residuals",
-    version="15",
+    version="16",
     func=map_residuals,
     inputs={"accel": "accel", "gyro": "gyro", "temperature": "temperature", "rests": "rests",
             "turns": "turns", "calibration": "calibration", "events": "events", "mag": "mag",

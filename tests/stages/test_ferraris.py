@@ -96,6 +96,22 @@ def test_simulated_ferraris_without_sections(tmp_path, capsys):
     np.testing.assert_allclose(doc["gyro"]["b0"], truth["calibration"]["gyro"]["b0"], atol=1e-3)
 
 
+def test_a_simulated_ferraris_null_is_diagnosed_quiet(tmp_path, capsys):
+    """The pipeline's segmentation is not given the temperature: the map takes the rests' from the
+    stream, so it refits the temperature coefficients the Ferraris calibration leaves out (a
+    self-heating unit's bias follows its temperature, which was named a warm-up transient)."""
+    from imupipe.sim.api import simulate
+
+    path = tmp_path / "ferraris.mcap"
+    simulate("ferraris", {}, 3, path, True, params={"pose_s": 4.0, "turn_s": 5.0})
+    g = json.loads(Path(f"{path}.truth.json").read_text())["environment"]["g_m_s2"]
+    out = tmp_path / "out"
+    code = cli.main(["diagnose", str(path), "--pipeline", "ferraris", "--set", f"ferraris.g_m_s2={g}",
+                     "--out", str(out), "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    assert json.loads((out / "ferraris" / "diagnosis.json").read_text())["findings"] == []
+
+
 def _sim_inputs(seed=3):
     """A simulated Ferraris session's tables and its section list from the truth segments."""
     import pyarrow as pa
