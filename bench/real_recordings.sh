@@ -34,7 +34,8 @@ if (folder / "residual_map.json").exists():
 if (folder / "diagnosis.json").exists():
     d = json.loads((folder / "diagnosis.json").read_text())
     for f in d["findings"]:
-        print(f"   finding {f['effect']} ({f['sensor']}, {f['regime']}): { {k: v for k, v in f['parameters'].items() if k != 'description'} }; held-out "
+        params = {k: v for k, v in f["parameters"].items() if k != "description"}  # an unknown's is its explanation
+        print(f"   finding {f['effect']} ({f['sensor']}, {f['regime']}): {params}; held-out "
               f"{f['heldout_rms_before']} -> {f['heldout_rms_after']}")
     for f in d.get("not_confirmed", []):
         print(f"   not confirmed {f['effect']} ({f['sensor']}): {f['reason']}")

@@ -170,9 +170,12 @@ class Signals:
         self.rows_a, self.rows_g = _rows3(lin, "accel_rest"), _rows3(lin, "gyro_rest")
         self.W_a, self.W_g = model.W_a, model.W_g
         t_first = model.mid[0] - 0.5 * model.length[0]
-        # time since power-on: from the session's first sample, and from each rest after a power cycle
         on = np.r_[0.0, model.rests.t_start_s[model.power_on]]
-        since_on = lambda t: t - on[np.searchsorted(on, t, "right") - 1]  # noqa: E731
+
+        def since_on(t: np.ndarray) -> np.ndarray:
+            """Time since power-on: since the session's first sample, or the last rest after a power cycle."""
+            return t - on[np.searchsorted(on, t, "right") - 1]
+
         self.t_on_rest = since_on(model.mid)
         acc, ms = model.accel, model.motions
         self.rows_m = _rows3(lin, "accel_motion")
