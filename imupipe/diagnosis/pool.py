@@ -177,7 +177,7 @@ def _stacked(per: list[dict], parts: list[Linearised], key: tuple, tau: float | 
     cols = [c.columns if c is not None else np.zeros((len(lin.r), first.columns.shape[1]))
             for c, lin in zip(own, parts)]
     return Candidate(first.effect, first.sensor, first.regime, first.names, np.vstack(cols), first.to_params,
-                     first.extra_dof, first.fixed, heldout_sensor=first.heldout_sensor,
+                     first.extra_dof, first.fixed, rejects=first.rejects, heldout_sensor=first.heldout_sensor,
                      profile=partial(_stacked, per, parts, key) if first.profile else None)
 
 

@@ -11,7 +11,7 @@ from forward_synth import G, joint_model, noise_free_imu, rests_from_truth, smal
 
 from imupipe.diagnosis.evaluate import Evaluation
 from imupipe.diagnosis.linearised import fit
-from imupipe.diagnosis.pool import check_one_unit, diagnose_pooled, pool, pooled_walks
+from imupipe.diagnosis.pool import check_one_unit, diagnose_pooled, pool, pooled_candidates, pooled_walks
 from imupipe.diagnosis.select import VISIBLE_MIN, candidates, examine, rigid_walks, time_blocks
 from imupipe.errors import ImupipeError
 from imupipe.sim.api import known_effects, simulate_arrays
@@ -135,3 +135,18 @@ def test_a_gyro_walk_each_warm_up_hides_in_its_k_is_found_with_one_k():
     assert [gyro_walk_intensity(r, c["gyro"], True, None)[0][0] for r, c in zip(rests, cals)] == [0.0, 0.0]
     _, q_g = pooled_walks(rests, [c["accel"] for c in cals], [c["gyro"] for c in cals], G)
     assert GYRO_RW**2 / 10 < q_g < GYRO_RW**2 * 10
+
+
+def test_pooled_candidates_keep_what_each_sessions_own_carry(nulls):
+    """A pooled candidate keeps its held-out sensor and its rejection rule, and a warm-up's profile
+    stacks each session's own columns at the asked time constant."""
+    warm = _fitted(25.0, None, warming=True)
+    parts = [warm, nulls[2]]
+    pooled = pooled_candidates(parts, [np.eye(3)] * 2, known_effects())
+    lag = next(c for c, _ in pooled if c.effect == "thermal_lag")
+    assert lag.sensor == "temperature" and lag.heldout_sensor in ("accel", "gyro") and lag.rejects is not None
+    c, own = next((c, own) for c, own in pooled if c.effect == "warmup_transient" and c.sensor == "gyro")
+    expected = np.vstack([o.profile(50.0).columns if o is not None else np.zeros((len(lin.r), 3))
+                          for o, lin in zip(own, parts)])
+    np.testing.assert_array_equal(c.profile(50.0).columns, expected)
+    assert c.profile(50.0).fixed == {"tau_s": 50.0}
