@@ -93,7 +93,7 @@ def test_a_thermal_lag_is_named_not_a_warm_up_and_its_time_constant_fitted():
 def test_a_warm_up_transient_is_named_not_a_thermal_lag_and_its_time_constant_fitted(null):
     # a time constant between the selection's grid points (30 and 120 s): profiled, not the grid's
     tau = 50.0
-    a, se, d = _size_and_error(null, "warmup_transient", 30.0)
+    a, _, d = _size_and_error(null, "warmup_transient", 30.0)
     doc, _ = _diagnosis({"warmup_transient": {"amp": list(a * d), "tau_s": tau, "sensor": "gyro"}})
     assert [f["effect"] for f in doc["findings"]] == ["warmup_transient"], doc["findings"]
     assert not [f for f in doc["not_confirmed"] if f["effect"] == "thermal_lag"]

@@ -36,7 +36,7 @@ EFFECTS = {
 def _response(fitted, effect: str, params: dict) -> tuple:
     """The fitted model's residual change when the simulator applies ``effect`` to the readings,
     and the term's candidate."""
-    imu, out, truth, model, rests, turns, lin = fitted
+    imu, model, lin = fitted[0], fitted[3], fitted[-1]
     out2, truth2 = simulate_arrays("gimbal", {effect: params}, SEED, imu=imu, env={"gravity_m_s2": G},
                                    grid_deg=60.0, rest_s=2.0, step_s=1.5, n_rotations=6, rotation_s=2.0)
     rests2, turns2 = rests_from_truth(out2, truth2)
