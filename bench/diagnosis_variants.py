@@ -6,7 +6,7 @@ Each variant is a null (no omitted physics) of the benches' consumer-MEMS sensor
 (``residual_nulls.realistic_imu``) with one thing changed: rests of 2 s (``gimbal-rest2``,
 ``standard-rest2``), a 200 Hz sensor (``gimbal-200hz``), or a bias instability the model does not
 have (``standard-inst``: ``residual_nulls.INSTABILITY``, first-order Gauss-Markov over 100 s).
-Six more kinds change the recorded streams after the simulator, as real recordings differ from
+Seven more kinds change the recorded streams after the simulator, as real recordings differ from
 it (the last field of ``VARIANTS``): hand-held rests vibrating at 4-8 Hz (``standard-tremor``, ``sim.tremor``), a knock
 inside a turn (``standard-knock``: a 4 g, 20 ms jolt with a rattle of the gyro that comes back to
 where it started), flicker noise, whose Allan deviation is flat where a walk's rises
@@ -14,10 +14,12 @@ where it started), flicker noise, whose Allan deviation is flat where a walk's r
 ``standard-jitter``: 0.5 ms sd, one stamp per message of all streams, order kept), white noise
 shared by a triad's three axes (``gimbal-common``, ``standard-common``: as much again as each axis's
 own, a correlation of 0.5), and single-sample glitches of a bus (``gimbal-glitch``,
-``standard-glitch``: one every ``GLITCH_EVERY_S`` per triad, a quarter of its range on one axis).
+``standard-glitch``: one every ``GLITCH_EVERY_S`` per triad, a quarter of its range on one axis),
+and an accelerometer read at its own, lower rate (``gimbal-accel-rate``, ``standard-accel-rate``:
+its samples at every ``ACCEL_STEP``-th index, about 73 Hz beside the gyro's 100 Hz).
 Prints each session's findings (effect, sensor, regime, p) and how many sessions name a catalogue
 effect. A right answer is no finding, or for what is outside the catalogue (the instability and
-the six kinds above) an ``unknown`` or a noise-model finding, never a catalogue name.
+the seven kinds above) an ``unknown`` or a noise-model finding, never a catalogue name.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ KNOCK = {"accel_g": 4.0, "accel_s": 0.02, "gyro_rad_s": 3.0, "gyro_s": 0.04}
 COMMON_SD = {"accel": 0.5e-3 * G, "gyro": np.radians(0.02)}  # the benches' sensor's own white noise per sample
 GLITCH_EVERY_S = 200.0
 GLITCH = {"accel": 2.0 * G, "gyro": np.radians(125.0)}  # a quarter of its range: a high bit flipped
+ACCEL_STEP = 1.37  # the accelerometer's sample spacing in gyro samples (another output data rate)
 
 
 def tremor(streams: dict, truth, rng: np.random.Generator) -> dict:
@@ -122,6 +125,13 @@ def glitch(streams: dict, truth, rng: np.random.Generator) -> dict:
     return out
 
 
+def accel_rate(streams: dict, truth, rng: np.random.Generator) -> dict:
+    """The accelerometer at its own output data rate: its samples at every ``ACCEL_STEP``-th index,
+    rounded down (their stamps, uneven against the gyro's, are where they were read)."""
+    n = streams["accel"].num_rows
+    return {**streams, "accel": streams["accel"].take(np.unique(np.arange(0, n, ACCEL_STEP).astype(int)))}
+
+
 VARIANTS = {  # protocol, protocol parameters, sensor changes or "instability", what is done to its streams
     "gimbal-rest2": ("gimbal", {"rest_s": 2.0}, {}, None),
     "gimbal-200hz": ("gimbal", {}, {"rate_hz": 200.0}, None),
@@ -137,6 +147,8 @@ VARIANTS = {  # protocol, protocol parameters, sensor changes or "instability", 
     "standard-common": ("standard", {}, {}, common),
     "gimbal-glitch": ("gimbal", {}, {}, glitch),
     "standard-glitch": ("standard", {}, {}, glitch),
+    "gimbal-accel-rate": ("gimbal", {}, {}, accel_rate),
+    "standard-accel-rate": ("standard", {}, {}, accel_rate),
 }
 
 
