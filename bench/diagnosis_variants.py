@@ -139,16 +139,9 @@ VARIANTS = {  # protocol, protocol parameters, sensor changes or "instability", 
     "standard-inst": ("standard", {}, "instability", None),
     "standard-tremor": ("standard", {}, {}, tremor),
     "standard-knock": ("standard", {}, {}, knock),
-    "gimbal-flicker": ("gimbal", {}, {}, flicker),
-    "standard-flicker": ("standard", {}, {}, flicker),
-    "gimbal-jitter": ("gimbal", {}, {}, jitter),
-    "standard-jitter": ("standard", {}, {}, jitter),
-    "gimbal-common": ("gimbal", {}, {}, common),
-    "standard-common": ("standard", {}, {}, common),
-    "gimbal-glitch": ("gimbal", {}, {}, glitch),
-    "standard-glitch": ("standard", {}, {}, glitch),
-    "gimbal-accel-rate": ("gimbal", {}, {}, accel_rate),
-    "standard-accel-rate": ("standard", {}, {}, accel_rate),
+    **{f"{protocol}-{kind}": (protocol, {}, {}, after) for kind, after in (
+        ("flicker", flicker), ("jitter", jitter), ("common", common), ("glitch", glitch), ("accel-rate", accel_rate))
+       for protocol in ("gimbal", "standard")},
 }
 
 

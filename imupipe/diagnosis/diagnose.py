@@ -22,7 +22,7 @@ from .evaluate import Evaluation
 from .library import structure_cells
 from .residual_map import benjamini_hochberg, windows
 from .select import (BLOCK_S, BOOT_DRAWS, EARTH_IMPLAUSIBLE, HELDOUT_Z, LONG_BLOCKS, Q_FDR, REVEAL, UNTESTED,
-                     VISIBLE_MIN, Finding, candidates, examine, heldout, rigid_walks, select, theta_cov)
+                     VISIBLE_MIN, Finding, candidates, examine, heldout, rigid_walks, select, theta_cov, triads)
 
 AXES = ("x", "y", "z")
 SD_DRAWS = 400  # draws carrying a term's covariance to its parameters' standard deviations
@@ -261,8 +261,8 @@ def _unknown(cell: dict) -> dict:
 
 
 def _readings(sensor: str) -> str:
-    """Whose residuals a term of ``sensor`` moves (a thermal lag's, of the temperature: both triads')."""
-    return "accel and gyro" if sensor == "temperature" else sensor
+    """Whose residuals a term of ``sensor`` moves, in words (``select.triads``)."""
+    return " and ".join(triads(sensor))
 
 
 def _edge(x: float | None, infinite: str) -> str:

@@ -132,9 +132,10 @@ class Candidate:
     profile: object = None  # tau -> the candidate at that time constant (``_profile`` once accepted)
 
 
-def triads(c: Candidate) -> set[str]:
-    """The triads whose readings ``c``'s term moves (a thermal lag's: both, along their ``k``)."""
-    return {"accel", "gyro"} if c.sensor == "temperature" else {c.sensor}
+def triads(sensor: str) -> tuple[str, ...]:
+    """The triads whose readings a term of ``sensor`` moves (the temperature's, a thermal lag: both,
+    along their ``k``)."""
+    return ("accel", "gyro") if sensor == "temperature" else (sensor,)
 
 
 @dataclass
@@ -537,7 +538,7 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR, latitude_deg
         k = Cp.shape[1]
         bonferroni = max(1, t.candidate.extra_dof)
         p_asym = min(1.0, float(stats.chi2.sf(T, k)) * bonferroni)
-        blocks = groups[bool(triads(t.candidate) & misfit)]
+        blocks = groups[bool(misfit.intersection(triads(t.candidate.sensor)))]
         p = p_asym if p_asym > q else max(p_asym, min(1.0, wild_p(Cp, r, blocks) * bonferroni))
         return T, p, p_asym
 
