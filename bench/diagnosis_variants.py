@@ -3,7 +3,9 @@
     python bench/diagnosis_variants.py [--seeds 2] [--first-seed 0] [--variants NAME ...] [--jobs 2]
 
 Each variant is a null (no omitted physics) of the benches' consumer-MEMS sensor
-(``residual_nulls.realistic_imu``) with one thing changed: rests of 2 s (``gimbal-rest2``,
+(``residual_nulls.realistic_imu``) with one thing changed: another protocol (``sphere-rig`` with the
+default pipeline, ``ferraris`` with its own, whose segmentation is not given the temperature),
+rests of 2 s (``gimbal-rest2``,
 ``standard-rest2``), a 200 Hz sensor (``gimbal-200hz``), or a bias instability the model does not
 have (``standard-inst``: ``residual_nulls.INSTABILITY``, first-order Gauss-Markov over 100 s).
 Seven more kinds change the recorded streams after the simulator, as real recordings differ from
@@ -137,6 +139,8 @@ VARIANTS = {  # protocol, protocol parameters, sensor changes or "instability", 
     "gimbal-200hz": ("gimbal", {}, {"rate_hz": 200.0}, None),
     "standard-rest2": ("standard", {"rest_s": 2.0, "reference_rest_s": 4.0}, {}, None),
     "standard-inst": ("standard", {}, "instability", None),
+    "sphere-rig": ("sphere_rig", {}, {}, None),
+    "ferraris": ("ferraris", {}, {}, None),
     "standard-tremor": ("standard", {}, {}, tremor),
     "standard-knock": ("standard", {}, {}, knock),
     **{f"{protocol}-{kind}": (protocol, {}, {}, after) for kind, after in (

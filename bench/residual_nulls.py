@@ -43,7 +43,8 @@ from imupipe.sim.sensor import default_imu
 
 REPO = Path(__file__).resolve().parents[1]
 G = 9.80665
-PIPELINE = {"standard": None, "sphere_rig": None, "gimbal": REPO / "pipelines" / "gimbal-optimization.toml"}
+PIPELINE = {"standard": None, "sphere_rig": None, "gimbal": REPO / "pipelines" / "gimbal-optimization.toml",
+            "ferraris": REPO / "pipelines" / "ferraris.toml"}
 BAND_SD = 3.0
 # a bias instability of the size consumer MEMS data sheets give (gyro ~4 deg/h, accelerometer ~20 ug),
 # as a first-order Gauss-Markov process over 100 s
