@@ -56,6 +56,7 @@ from .attitude import Attitude, MotionSamples, Points, Quadrature, RateDerivativ
 
 _LOWER = shape_basis("lower")  # (6, 3, 3)
 SAMPLE_CHUNK = 8192  # motion samples whose derivatives are formed at once (memory, not speed)
+GYRO_CHUNK = 12  # columns of a gyro term whose attitude sensitivities are formed at once (memory)
 BLOCKS = ("accel_rest", "gyro_rest", "walk_gyro", "walk_accel", "turn", "accel_motion", "k_prior")
 SENSOR_OF = {"accel_rest": "accel", "gyro_rest": "gyro", "turn": "gyro", "accel_motion": "accel",
              "walk_gyro": "gyro", "walk_accel": "accel", "k_prior": "prior"}
@@ -468,18 +469,19 @@ class JointModel:
         return x
 
     def _endpoints(self, P: dict, x_l: np.ndarray, jacobian: bool = True, with_globals: bool = True,
-                   rate_columns: np.ndarray | None = None):
+                   rate_columns: np.ndarray | None = None, att: Attitude | None = None):
         """Gnomonic end-point ``z_K`` (m, 2) of every motion and what it needs for derivatives
         (``jacobian=False``: None for ``dz_gyro``, ``dz_dq`` and ``D``; ``with_globals=False``:
-        the rate derivatives and ``dz_gyro`` hold the 6 walk columns only; ``rate_columns``: see
-        ``residuals``)."""
-        omega, D = self._rates(P, x_l, derivatives=jacobian)
-        if D is not None and rate_columns is not None:  # the 15 globals' places; no walk columns
-            D = np.zeros((len(omega), 3, 15))
-            D[:, :, :rate_columns.shape[2]] = rate_columns
-        elif D is not None and not with_globals:
-            D = RateDerivatives(D.coef, D.basis[:, :, 15:])
-        att = Attitude.integrate(self.quad, omega)
+        the rate derivatives and ``dz_gyro`` hold the 6 walk columns only; ``rate_columns``
+        (N_g, 3, k): the derivatives of the motions' calibrated rates w.r.t. k other parameters, in
+        place of the model's own (``gyro_columns``), with ``att`` the attitude at ``P``, ``x_l``."""
+        if rate_columns is not None:
+            omega, D = att.omega, rate_columns
+        else:
+            omega, D = self._rates(P, x_l, derivatives=jacobian)
+            if D is not None and not with_globals:
+                D = RateDerivatives(D.coef, D.basis[:, :, 15:])
+            att = Attitude.integrate(self.quad, omega)
         u, du = self.gravity(x_l)
         w = np.einsum("mij,mj->mi", att.total, u[self.qr]) if self.m else np.zeros((0, 3))
         u0p, Bp = self.u0[self.p], self.B[self.p]
@@ -493,20 +495,40 @@ class JointModel:
         dz_dq = np.einsum("mai,mij,mjk->mak", G, att.total, du[self.qr])  # (m, 2, 2)
         return zK, dz_gyro, dz_dq, att, D, omega, u, du
 
+    @property
+    def motion_rows(self) -> np.ndarray:
+        """The rows a term on the motions' gyro samples moves: the turns', then the motion samples'."""
+        return np.flatnonzero(self.rows.of("turn") | self.rows.of("accel_motion"))
+
     def gyro_columns(self, x_g: np.ndarray, x_l: np.ndarray, dy: np.ndarray) -> np.ndarray:
-        """(N, k) d r / d theta of a term ``dy`` (N_g, 3, k) added to the motions' raw gyro samples,
-        analytically: the calibration turns it into rate derivatives ``M_g dy`` whose columns the
-        residuals' own Jacobian carries (``rate_columns``), twelve at a time; zero off the motions' rows."""
-        M_g = self.unpack(x_g)["M_g"]
-        gl = self.glob.slices
-        slots = np.arange(gl["M_g"].start, gl["b_g"].stop)
-        motion = np.flatnonzero(self.rows.of("turn") | self.rows.of("accel_motion"))
-        out = np.zeros((len(self.rows.block), dy.shape[2]))
-        for a in range(0, dy.shape[2], len(slots)):
-            part = np.einsum("ab,nbk->nak", M_g, dy[:, :, a:a + len(slots)])
-            J_g = self.residuals(x_g, x_l, rate_columns=part)[1]
-            out[motion, a:a + part.shape[2]] = J_g[np.ix_(motion, slots[:part.shape[2]])]  # no row copy of J_g
-            del J_g
+        """(len(motion_rows), k) d r / d theta on the ``motion_rows`` of a term ``dy`` (N_g, 3, k)
+        added to the motions' raw gyro samples (zero on every other row), analytically: the
+        calibration turns it into rate derivatives ``M_g dy``, which move the attitude at the
+        motions' samples and end-points; ``GYRO_CHUNK`` columns at a time (memory: the attitude's
+        sensitivities are as wide as the columns)."""
+        P = self.unpack(x_g)
+        n_turn = int(2 * self.K.sum())
+        out = np.zeros((n_turn + 3 * len(self.accel.t), dy.shape[2]))
+        if not self.m:
+            return out
+        WS = -self.g * self.W_sample @ P["S_a"]  # d r / d (gravity in the body)
+        W_end = np.stack([W[-1] for W in self.Qk_w])
+        ends = (np.cumsum(2 * self.K) - 2)[:, None] + np.arange(2)  # (m, 2) each motion's last interval
+        samples = (n_turn + np.arange(len(out) - n_turn)).reshape(-1, 3)
+        att = Attitude.integrate(self.quad, self._rates(P, x_l, derivatives=False)[0])
+        geo = None
+        for a in range(0, dy.shape[2], GYRO_CHUNK):
+            cols = slice(a, min(a + GYRO_CHUNK, dy.shape[2]))
+            rate = np.einsum("ab,nbk->nak", P["M_g"], dy[:, :, cols])
+            zK, dz_gyro, _, _, D, *_ = self._endpoints(P, x_l, rate_columns=rate, att=att)
+            out[ends, cols] = W_end @ dz_gyro
+            if not len(samples):
+                continue
+            if geo is None:  # zK does not depend on the columns
+                geo = self._sample_geometry(x_l, zK, att)
+            for b in range(0, len(samples), SAMPLE_CHUNK):
+                n_c = len(samples[b:b + SAMPLE_CHUNK])
+                out[samples[b:b + n_c], cols] = self._sample_rate_rows(geo, att, D, dz_gyro, WS, b, n_c)[1]
         return out
 
     def turn_view(self, x_g: np.ndarray, x_l: np.ndarray) -> dict[str, np.ndarray]:
@@ -577,15 +599,11 @@ class JointModel:
 
     # ------------------------------------------------------------------ residuals
     def residuals(self, x_g: np.ndarray, x_l: np.ndarray, signals: bool = False, jacobian: bool = True,
-                  with_globals: bool = True, rate_columns: np.ndarray | None = None):
+                  with_globals: bool = True):
         """Whitened residual ``r`` (N,), ``J_g`` (N, P_g) dense, ``J_l`` (N, P_l) CSR; with
         ``signals`` also a dict of the model's intermediate quantities (predictions, gravity);
         ``jacobian=False``: the residual alone (None for both Jacobians, far cheaper);
-        ``with_globals=False``: ``J_g`` has no columns (a fit of the nuisances alone).
-        ``rate_columns`` (N_g, 3, k <= 12): derivatives of the motions' calibrated rates w.r.t. k
-        other parameters, in place of the calibration's: on the motions' rows (turns, samples)
-        ``J_g``'s first k gyro columns (M_g, then b_g) are then their columns (``gyro_columns``),
-        and ``J_l`` is None."""
+        ``with_globals=False``: ``J_g`` has no columns (a fit of the nuisances alone)."""
         P = self.unpack(x_g)
         n, g, gl = self.n, self.g, self.glob.slices
         Pg, Pl = self.glob.size, self.stages.size
@@ -609,10 +627,8 @@ class JointModel:
         block.reserve = lambda n: J_g[row0:row0 + n]  # the next n rows' J_g, to fill in place
         block.globals = with_globals
 
-        with_locals = jacobian and rate_columns is None  # other parameters' columns: no J_l (memory)
-
         def local(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray) -> None:
-            if not with_locals:
+            if not jacobian:
                 return
             keep = cols >= 0
             trip.append((rows[keep].ravel(), cols[keep].ravel(), vals[keep].ravel()))
@@ -620,13 +636,12 @@ class JointModel:
         def flat(where, vals: np.ndarray) -> None:
             """Entries ``vals`` (kept ones only) whose rows and columns ``where()`` returns (a
             constant pattern: asked for only until the model knows J_l's sparsity)."""
-            if with_locals:
+            if jacobian:
                 trip.append((where, None, vals))
 
         local.flat = flat
 
-        zK, dz_gyro, dz_dq, att, D, omega, u, du = self._endpoints(P, x_l, jacobian, with_globals,
-                                                                   rate_columns) if self.m else \
+        zK, dz_gyro, dz_dq, att, D, omega, u, du = self._endpoints(P, x_l, jacobian, with_globals) if self.m else \
             (None,) * 6 + self.gravity(x_l)
         wga, wgb = self.walk_states(x_l, "wg")
         waa, wab = self.walk_states(x_l, "wa")
@@ -688,8 +703,6 @@ class JointModel:
             return (r, None, None, sig) if signals else (r, None, None)
         if len(r) != len(J_g):
             raise AssertionError("row metadata and residual rows disagree")
-        if not with_locals:
-            return (r, J_g, None, sig) if signals else (r, J_g, None)
         vv = np.concatenate([t[2] for t in trip]) if trip else np.zeros(0)
         J_l = self._local_jacobian(trip, vv, len(r), Pl)
         return (r, J_g, J_l, sig) if signals else (r, J_g, J_l)
@@ -700,17 +713,18 @@ class JointModel:
         entry repeats a row and column), later ones only permute the values."""
         pat = self.__dict__.get("_jl_pattern")
         if pat is None or pat[0] != len(vv):
-            rc = [t[0]() if t[1] is None else (t[0], t[1]) for t in trip]
-            rr = np.concatenate([x[0] for x in rc]) if rc else np.zeros(0, np.int64)
-            cc = np.concatenate([x[1] for x in rc]) if rc else np.zeros(0, np.int64)
-            key = rr.astype(np.int64) * max(Pl, 1) + cc  # one sort key: 7x faster than np.lexsort
+            width = max(Pl, 1)
+            keys = [np.asarray(rr, np.int64) * width + cc for rr, cc in
+                    (t[0]() if t[1] is None else (t[0], t[1]) for t in trip)]
+            key = np.concatenate(keys) if keys else np.zeros(0, np.int64)  # one sort key: 7x faster than lexsort
+            del keys
             order = np.argsort(key, kind="stable")
-            if len(key) > 1 and np.any(np.diff(key[order]) == 0):  # repeats add up
-                return sp.csr_matrix((vv, (rr, cc)), shape=(N, Pl))
-            rs, cs = rr[order], cc[order]
+            key = key[order]  # row-major: each row's entries in column order
+            if len(key) > 1 and np.any(key[1:] == key[:-1]):  # repeats add up
+                return sp.csr_matrix((vv[order], (key // width, key % width)), shape=(N, Pl))
             idx = np.int32 if max(N, Pl, len(vv)) < 2**31 else np.int64
-            indptr = np.r_[0, np.cumsum(np.bincount(rs, minlength=N))].astype(idx)
-            pat = (len(vv), order.astype(idx), cs.astype(idx), indptr)
+            indptr = np.searchsorted(key, np.arange(N + 1) * width).astype(idx)
+            pat = (len(vv), order.astype(idx), (key % width).astype(idx), indptr)
             self.__dict__["_jl_pattern"] = pat
         _, order, indices, indptr = pat
         return sp.csr_matrix((vv[order], indices, indptr), shape=(N, Pl))
@@ -768,9 +782,9 @@ class JointModel:
                   (Wl @ dz_gyro[j])[:, -6:])
         if not (self.sampled and len(self.accel.t)):
             return
-        self._sample_rows(P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, cols_l, jac)
+        self._sample_rows(P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, jac)
 
-    def _sample_layout(self, cols_l: np.ndarray) -> dict[str, np.ndarray]:
+    def _sample_layout(self) -> dict[str, np.ndarray]:
         """What the motion samples' rows need that does not change between evaluations (kept):
         each sample's knot interval ``kidx`` and weight ``mu``, and the local columns of its
         row's entries (k, 16): the knot (or rest direction) before and after it (2 each), the
@@ -778,6 +792,7 @@ class JointModel:
         lay = self.__dict__.get("_layout")
         if lay is not None:
             return lay
+        cols_l = self._gyro_cols(np.arange(self.m))[1]
         acc = self.accel
         k = len(acc.t)
         j = acc.motion
@@ -808,14 +823,16 @@ class JointModel:
         self.__dict__["_layout"] = lay
         return lay
 
-    def _sample_rows(self, P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, cols_l, jac=True):
+    def _sample_geometry(self, x_l: np.ndarray, zK: np.ndarray, att: Attitude) -> dict[str, np.ndarray]:
+        """Where each motion sample's gravity comes from: its rotation ``R`` (k, 3, 3) from the
+        motion's start, the start-frame direction ``nvec`` (k, 3) of the gnomonic point
+        interpolated between its knots (weight ``mu``; ``last``: on the motion's last interval)
+        and its derivative ``dn`` (k, 3, 3), the point's basis ``Bp`` (k, 3, 2)."""
         acc = self.accel
         k = len(acc.t)
         j = acc.motion
-        p, q = self.p[j], self.qr[j]
-        Pg, gl, g, S_a = self.glob.size, self.glob.slices, self.g, P["S_a"]
-        R = att.rotation_at(self.accel_points)  # (k, 3, 3)
-        lay = self._sample_layout(cols_l)
+        p = self.p[j]
+        lay = self._sample_layout()
         kidx, mu = lay["kidx"], lay["mu"]
         Kj = self.K[j]
         ks = self.stages.knot_start[p]
@@ -830,10 +847,39 @@ class JointModel:
             return out
 
         z = (1 - mu)[:, None] * knot_value(kidx) + mu[:, None] * knot_value(kidx + 1)
-        u0p, Bp = self.u0[p], self.B[p]
-        nvec, dn = _normalise(u0p + (Bp @ z[:, :, None])[:, :, 0])
-        Rt = np.swapaxes(R, 1, 2)  # (stacked matmul: far faster than einsum here)
-        ub = (Rt @ nvec[:, :, None])[:, :, 0]  # gravity in the body at the sample
+        Bp = self.B[p]
+        nvec, dn = _normalise(self.u0[p] + (Bp @ z[:, :, None])[:, :, 0])
+        last = np.zeros(k, bool)
+        last[lay["where_last"]] = True
+        return {"R": att.rotation_at(self.accel_points), "nvec": nvec, "dn": dn, "Bp": Bp, "mu": mu,
+                "last": last}
+
+    def _sample_rate_rows(self, geo: dict, att: Attitude, D, dz_gyro: np.ndarray, WS: np.ndarray,
+                          a: int, n_c: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For motion samples ``a`` to ``a + n_c``: d r / d z (n_c, 3, 2) of their rows, d r / d
+        (the rate derivatives ``D``' parameters) (n_c, 3, P) through the attitude at the sample and,
+        on the last knot interval, through the end-point too, and those samples (``end``)."""
+        c = slice(a, a + n_c)
+        Rt = np.swapaxes(geo["R"][c], 1, 2)  # (stacked matmul: far faster than einsum here)
+        Phi = att.sensitivity(D, self.accel_points.subset(np.arange(a, a + n_c)))  # (c, 3, P)
+        dr_dz = WS @ (Rt @ geo["dn"][c] @ geo["Bp"][c])  # d r / d z (c, 3, 2)
+        dr_gyro = (WS @ (Rt @ skew(geo["nvec"][c]))) @ Phi  # (c, 3, P)
+        del Phi
+        end = np.flatnonzero(geo["last"][c])
+        mc = geo["mu"][c]
+        dr_gyro[end] += mc[end, None, None] * np.einsum("kia,kap->kip", dr_dz[end], dz_gyro[self.accel.motion[c][end]])
+        return dr_dz, dr_gyro, end
+
+    def _sample_rows(self, P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, jac=True):
+        acc = self.accel
+        k = len(acc.t)
+        j = acc.motion
+        p, q = self.p[j], self.qr[j]
+        Pg, gl, g, S_a = self.glob.size, self.glob.slices, self.g, P["S_a"]
+        geo = self._sample_geometry(x_l, zK, att)
+        lay = self._sample_layout()
+        mu = lay["mu"]
+        ub = (np.swapaxes(geo["R"], 1, 2) @ geo["nvec"][:, :, None])[:, :, 0]  # gravity in the body at the sample
         lam = self.lam_acc[:, None]
         waa, wab = self.walk_states(x_l, "wa")
         walk = (1 - lam) * wab[p] + lam * waa[q]
@@ -850,18 +896,11 @@ class JointModel:
             assert np.array_equal(cols_g[:12], np.arange(gl["M_g"].start, gl["b_g"].stop))
         WS = -g * self.W_sample @ S_a  # d r / d ub
         WL = np.einsum("ij,ljm->ilm", self.W_sample, _LOWER)  # (3, 6, 3)
-        last = np.zeros(k, bool)
-        last[lay["where_last"]] = True
         for a in range(0, k, SAMPLE_CHUNK):  # the derivatives of SAMPLE_CHUNK samples at a time
             c = slice(a, a + SAMPLE_CHUNK)
             n_c = len(acc.t[c])
-            Phi = att.sensitivity(D, self.accel_points.subset(np.arange(a, a + n_c)))  # (c, 3, 21) or (c, 3, 6)
-            dr_dz = WS @ (Rt[c] @ dn[c] @ Bp[c])  # d r / d z (c, 3, 2)
-            dr_gyro = (WS @ (Rt[c] @ skew(nvec[c]))) @ Phi  # (c, 3, 21)
-            del Phi
-            end = np.flatnonzero(last[c])
+            dr_dz, dr_gyro, end = self._sample_rate_rows(geo, att, D, dz_gyro, WS, a, n_c)
             jc, mc = j[c], mu[c]
-            dr_gyro[end] += mc[end, None, None] * np.einsum("kia,kap->kip", dr_dz[end], dz_gyro[jc[end]])
             if Jg is not None:
                 Jc = Jg[c]
                 Jc[:, :, gl["S_a"]] = -(f[c] @ WL.reshape(-1, 3).T).reshape(n_c, 3, -1)

@@ -192,7 +192,7 @@ def _carried(s: Signals, signals: list, exact: list[bool]) -> _Carried:
     lin, model = s.lin, s.model
     ms, rows = model.motions, lin.rows
     turn, acc = np.flatnonzero(rows.of("turn")), np.flatnonzero(rows.of("accel_motion"))
-    at = np.r_[turn, acc]
+    at = np.r_[turn, acc]  # = model.motion_rows, the rows of its gyro columns
     motion = np.r_[rows.index[turn], model.accel.motion[rows.index[acc]]] if len(acc) else rows.index[turn]
     count = np.maximum(np.bincount(ms.motion, minlength=ms.count), 1)
     X = np.zeros((len(at), len(signals)))
@@ -206,7 +206,7 @@ def _carried(s: Signals, signals: list, exact: list[bool]) -> _Carried:
         i, _, _, u = columns[c]
         dy[:, i, j] = signals[u][1]
     E = np.zeros((len(at), len(columns)))
-    E[:, by_column] = s.gyro_motion_column(dy)[at]
+    E[:, by_column] = s.gyro_motion_column(dy)
     return _Carried(at, lin.J_g[at, lin.globals.slices["b_g"]], X, E)
 
 

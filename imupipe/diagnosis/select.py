@@ -249,12 +249,13 @@ class Signals:
         "gyro_motion")."""
         C = self.column(self.rows_g, self.W_g, regressors("rest"))
         if self.has_gyro_motion:
-            C = C + self.gyro_motion_column(regressors("gyro_motion"))
+            C[self.model.motion_rows] += self.gyro_motion_column(regressors("gyro_motion"))
         return C
 
     def gyro_motion_column(self, dy: np.ndarray) -> np.ndarray:
-        """(N, k) the column of a term ``dy`` (N_g, 3, k) added to the motions' gyro samples, through
-        the attitude they integrate to (``JointModel.gyro_columns``; the term in the prediction: r falls)."""
+        """(len(motion_rows), k) the column of a term ``dy`` (N_g, 3, k) added to the motions' gyro
+        samples on the rows it moves (``JointModel.motion_rows``), through the attitude they integrate
+        to (``JointModel.gyro_columns``; the term in the prediction: r falls)."""
         return -self.model.gyro_columns(self.lin.x_g, self.lin.x_l, dy)
 
 

@@ -138,33 +138,42 @@ class BlockTridiagonal:
         """(N,) ``diag(J A^-1 J^T)`` for a sparse ``J`` whose rows touch two consecutive stages
         at most, from the selected inverse: per row, the quadratic form of its few entries with
         the inverse's block on their columns. Consecutive rows on the same columns (the samples
-        of one knot interval) share that block; nothing of size N x q is formed."""
+        of one knot interval) share that block; nothing of size N x q is formed, and the rows
+        are taken ``chunk`` at a time."""
         J = sp.csr_matrix(J)
         if not J.has_canonical_format:
             J = J.copy()
             J.sum_duplicates()
         N = J.shape[0]
-        counts = np.diff(J.indptr)
         if not N or not J.nnz:
             return np.zeros(N)
         Zd, Zl = self.selected_inverse()
+        inverse = (np.concatenate([z.ravel() for z in Zd]) if Zd else np.zeros(0),
+                   np.concatenate([z.ravel() for z in Zl] + [np.zeros(0)]),
+                   np.r_[0, np.cumsum([z.size for z in Zd])][:-1].astype(np.int64),
+                   np.r_[0, np.cumsum([z.size for z in Zl])].astype(np.int64))
+        width = int(np.diff(J.indptr).max())
+        return np.concatenate([self._row_forms(J[a:a + chunk], width, inverse) for a in range(0, N, chunk)])
+
+    def _row_forms(self, J: sp.csr_matrix, width: int, inverse: tuple) -> np.ndarray:
+        """``row_forms`` of the rows ``J``, at most ``width`` entries each, given the selected
+        inverse's blocks flattened (``inverse``: diagonal and lower blocks, and where each starts)."""
+        flat_d, flat_l, base_d, base_l = inverse
         o = self.offsets
         n = np.diff(o)
-        width = int(counts.max())
+        N = J.shape[0]
+        counts = np.diff(J.indptr)
         row = np.repeat(np.arange(N), counts)
         pos = np.arange(J.nnz) - J.indptr[row]
         cols = np.full((N, width), -1, np.int64)
         vals = np.zeros((N, width))
         cols[row, pos] = J.indices
         vals[row, pos] = J.data
+        del row, pos
         start = np.r_[True, np.any(cols[1:] != cols[:-1], axis=1)]
         run = np.cumsum(start) - 1
         c = cols[start]  # (R, width) the columns of each run of rows
         # the inverse's entries on each run's column pairs, from the stage blocks
-        flat_d = np.concatenate([z.ravel() for z in Zd]) if Zd else np.zeros(0)
-        flat_l = np.concatenate([z.ravel() for z in Zl] + [np.zeros(0)])
-        base_d = np.r_[0, np.cumsum([z.size for z in Zd])][:-1].astype(np.int64)
-        base_l = np.r_[0, np.cumsum([z.size for z in Zl])].astype(np.int64)
         stage = np.searchsorted(o, np.maximum(c, 0), "right") - 1
         within = np.maximum(c, 0) - o[stage]
         s1, s2 = stage[:, :, None], stage[:, None, :]
@@ -177,12 +186,8 @@ class BlockTridiagonal:
         Zr[m] = flat_l[(base_l[np.maximum(s2, 0)] + w1 * n[np.maximum(s2, 0)] + w2)[m]]
         m = real & (s2 == s1 + 1)  # its transpose
         Zr[m] = flat_l[(base_l[np.maximum(s1, 0)] + w2 * n[np.maximum(s1, 0)] + w1)[m]]
-        out = np.empty(N)
-        for a in range(0, N, chunk):
-            b = min(a + chunk, N)
-            v = vals[a:b, :, None]
-            out[a:b] = (np.swapaxes(v, 1, 2) @ (Zr[run[a:b]] @ v))[:, 0, 0]
-        return out
+        v = vals[:, :, None]
+        return (np.swapaxes(v, 1, 2) @ (Zr[run] @ v))[:, 0, 0]
 
     def selected_sparse(self) -> sp.csr_matrix:
         """``selected_inverse`` as a sparse symmetric (N, N) matrix (zero outside the pattern)."""
@@ -208,6 +213,16 @@ class BlockTridiagonal:
                              shape=(self.size, self.size))
 
 
+def _gram(J: sp.csr_matrix, chunk: int = 1 << 16) -> sp.csr_matrix:
+    """``J^T J`` summed over chunks of rows: the product transposes its operand, and a chunk's
+    copy is small where a whole long recording's Jacobian is not."""
+    A = sp.csr_matrix((J.shape[1], J.shape[1]))
+    for a in range(0, J.shape[0], chunk):
+        Jc = J[a:a + chunk]
+        A = A + (Jc.T @ Jc)
+    return A.tocsr()
+
+
 @dataclass
 class Bordered:
     """The normal equations of ``r(x_g, x_l)`` with Jacobians ``J_g`` (N, p) dense and ``J_l``
@@ -224,7 +239,7 @@ class Bordered:
 
     def __post_init__(self) -> None:
         J_l = self.J_l
-        A_ll = (J_l.T @ J_l).tocsr()
+        A_ll = _gram(J_l)
         self.A_lg = np.asarray(J_l.T @ self.J_g)
         self.A_gg = self.J_g.T @ self.J_g
         if self.damping:
@@ -254,16 +269,18 @@ class Bordered:
         """(p, p) ``(A^-1)_gg = S^-1``: the globals' covariance with every local marginalised."""
         return cho_solve((self._S_chol, True), np.eye(len(self.S))) if len(self.S) else self.S
 
-    def leverage(self) -> np.ndarray:
+    def leverage(self, chunk: int = 1 << 16) -> np.ndarray:
         """(N,) ``diag(J A^-1 J^T)``, exact: ``a^T A_ll^-1 a + (g - X^T a)^T S^-1 (g - X^T a)``
         per row, the first term from the selected inverse (rows touch two stages at most)."""
         J_l = self.J_l
-        local = self.blocks.row_forms(J_l)
-        Gt = self.J_g - np.asarray(J_l @ self.X)
+        out = self.blocks.row_forms(J_l)
         if not len(self.S):
-            return local
-        W = solve_triangular(self._S_chol, Gt.T, lower=True)
-        return local + np.einsum("ij,ij->j", W, W)
+            return out
+        for a in range(0, len(out), chunk):  # G - J_l X, a chunk of rows at a time, is as wide as J_g
+            Gt = self.J_g[a:a + chunk] - np.asarray(J_l[a:a + chunk] @ self.X)
+            W = solve_triangular(self._S_chol, Gt.T, lower=True)
+            out[a:a + chunk] += np.einsum("ij,ij->j", W, W)
+        return out
 
 
 def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np.ndarray,

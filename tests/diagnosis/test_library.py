@@ -79,10 +79,10 @@ def test_the_gyro_signals_reach_the_motions_as_the_exact_column_does(fitted):
                 continue
             dy = np.zeros((len(s.model.motions.t), 3, 1))
             dy[:, i, 0] = signals[name]
-            exact = s.gyro_motion_column(dy)[:, 0]
-            assert np.linalg.norm(exact[motion]) > 0 and not exact[~motion].any()
+            exact = s.gyro_motion_column(dy)[:, 0]  # on the motions' rows, in order
+            assert np.linalg.norm(exact) > 0
             tol = 0.05 if name == "dT^2" else 1e-12
-            assert np.linalg.norm(C[motion, c] - exact[motion]) <= tol * np.linalg.norm(exact[motion])
+            assert np.linalg.norm(C[motion, c] - exact) <= tol * np.linalg.norm(exact)
             checked.add((lib.regime, name))
     assert {name for _, name in checked} == set(signals) and ("motion", "|x_x|") in checked
 
