@@ -10,10 +10,12 @@ runs it:
 * ``imupipe run SESSION`` (default pipeline, a fresh output directory so nothing is
   cached): CPU, wall, peak memory, and the slowest stages' wall seconds (run.json).
 
-It prints one row per length with the run/ingest CPU ratio and the peak memory beside
-the size of the decoded arrays (issue 13's target: <= 3x the arrays + 150 MiB), then
-the fitted log-log slope of run CPU, wall and memory against hours (1.0 = linear) and
-the 4 h / 1 h CPU ratio (target <= 4.5) when both were run.
+It prints one row per length with the run's sys time (the kernel's share of its CPU:
+``perf`` shows it zeroing the fresh pages of large temporary arrays, ``clear_page_erms``),
+the run/ingest CPU ratio and the peak memory beside the size of the decoded arrays (issue
+13's target: <= 3x the arrays + 150 MiB), then the fitted log-log slope of run CPU, wall
+and memory against hours (1.0 = linear) and the 4 h / 1 h CPU ratio (target <= 4.5), with
+its user and sys parts apart, when both were run.
 
 Each row names the bias walks of the residual map's null model (``walks``). They decide
 the per-sample Jacobian's width: with both walks, every motion sample's row also carries
@@ -82,7 +84,7 @@ MIB = 1 << 20
 
 
 def measure(cmd: list[str], **kw) -> dict:
-    """Run ``cmd`` to completion: CPU (user + sys of the child), wall seconds, peak RSS bytes."""
+    """Run ``cmd`` to completion: CPU (user + sys of the child) and its sys part, wall seconds, peak RSS bytes."""
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
     _, status, usage = os.wait4(proc.pid, 0)
@@ -91,8 +93,8 @@ def measure(cmd: list[str], **kw) -> dict:
     out, err = proc.stdout.read(), proc.stderr.read()
     if proc.returncode:
         sys.exit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{err}")
-    return {"cpu": usage.ru_utime + usage.ru_stime, "wall": wall, "rss": usage.ru_maxrss * 1024,
-            "stdout": out}
+    return {"cpu": usage.ru_utime + usage.ru_stime, "sys": usage.ru_stime, "wall": wall,
+            "rss": usage.ru_maxrss * 1024, "stdout": out}
 
 
 def without_map(path: Path) -> Path:
@@ -181,14 +183,14 @@ def main() -> None:
           "standard sessions at 100 Hz "
           f"of the {args.imu} unit (this script's own peak RSS, the floor of a child's: {floor / MIB:.0f} MiB)")
     print(f"{'hours':>5} {'n_pos':>5} {'min':>4} {'ingest CPU':>10} {'wall':>6} {'MiB':>5} | {'run CPU':>8} "
-          f"{'wall':>7} {'peak MiB':>8} | {'run/ingest':>10} {'arrays MiB':>10} {'mem target':>10} | "
+          f"{'sys':>5} {'wall':>7} {'peak MiB':>8} | {'run/ingest':>10} {'arrays MiB':>10} {'mem target':>10} | "
           f"{'walks':>10} | slowest stages (wall s)")
     for r in rows:
         i, u = r["ingest"], r["run"]
         target = 3 * r["arrays"] + 150 * MIB
         stages = ", ".join(f"{k} {s:.1f}" for s, k in r["stages"])
         print(f"{r['hours']:>5g} {r['n_positions']:>5} {r['duration_s'] / 60:>4.0f} {i['cpu']:>10.2f} {i['wall']:>6.2f} "
-              f"{i['rss'] / MIB:>5.0f} | {u['cpu']:>8.1f} {u['wall']:>7.1f} {u['rss'] / MIB:>8.0f} | "
+              f"{i['rss'] / MIB:>5.0f} | {u['cpu']:>8.1f} {u['sys']:>5.1f} {u['wall']:>7.1f} {u['rss'] / MIB:>8.0f} | "
               f"{u['cpu'] / i['cpu']:>9.1f}x {r['arrays'] / MIB:>10.1f} "
               f"{'ok' if u['rss'] <= target else 'OVER':>10} | {r['walks']:>10} | {stages}")
     if len(rows) >= 2:
@@ -200,7 +202,9 @@ def main() -> None:
               f"{slope(hours, [r['ingest']['cpu'] for r in rows]):.2f}")
     by = {r["hours"]: r for r in rows}
     if 1.0 in by and 4.0 in by:
-        print(f"run CPU 4 h / 1 h: {by[4.0]['run']['cpu'] / by[1.0]['run']['cpu']:.2f} (target <= 4.5)")
+        r4, r1 = by[4.0]["run"], by[1.0]["run"]
+        print(f"run CPU 4 h / 1 h: {r4['cpu'] / r1['cpu']:.2f} (target <= 4.5); user time alone "
+              f"{(r4['cpu'] - r4['sys']) / (r1['cpu'] - r1['sys']):.2f}, sys alone {r4['sys'] / r1['sys']:.2f}")
     if 1.0 in by:
         print(f"run / ingest CPU at 1 h: {by[1.0]['run']['cpu'] / by[1.0]['ingest']['cpu']:.1f}x "
               "(target <= 10x)")

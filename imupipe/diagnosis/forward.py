@@ -610,6 +610,10 @@ class JointModel:
         S_a = P["S_a"]
         r_parts, trip = [], []
         row0 = 0
+        # J_l's values go straight to their CSR places once the model knows its sparsity
+        pattern = self.__dict__.get("_jl_pattern") if jacobian else None
+        data = np.empty(len(pattern[0])) if pattern is not None else None
+        filled = 0
         # the globals' Jacobian is written in place, block by block (no stacked copy)
         J_g = np.zeros((len(self.rows.block), Pg if with_globals else 0)) if jacobian else None
 
@@ -627,16 +631,26 @@ class JointModel:
         block.reserve = lambda n: J_g[row0:row0 + n]  # the next n rows' J_g, to fill in place
         block.globals = with_globals
 
+        def put(vals: np.ndarray) -> None:
+            nonlocal filled
+            data[pattern[0][filled:filled + len(vals)]] = vals
+            filled += len(vals)
+
         def local(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray) -> None:
             if not jacobian:
                 return
             keep = cols >= 0
-            trip.append((rows[keep].ravel(), cols[keep].ravel(), vals[keep].ravel()))
+            if data is not None:
+                put(vals[keep].ravel())
+            else:
+                trip.append((rows[keep].ravel(), cols[keep].ravel(), vals[keep].ravel()))
 
         def flat(where, vals: np.ndarray) -> None:
             """Entries ``vals`` (kept ones only) whose rows and columns ``where()`` returns (a
             constant pattern: asked for only until the model knows J_l's sparsity)."""
-            if jacobian:
+            if data is not None:
+                put(vals)
+            elif jacobian:
                 trip.append((where, None, vals))
 
         local.flat = flat
@@ -703,30 +717,36 @@ class JointModel:
             return (r, None, None, sig) if signals else (r, None, None)
         if len(r) != len(J_g):
             raise AssertionError("row metadata and residual rows disagree")
-        vv = np.concatenate([t[2] for t in trip]) if trip else np.zeros(0)
-        J_l = self._local_jacobian(trip, vv, len(r), Pl)
+        if data is None:
+            J_l = self._local_jacobian(trip, len(r), Pl)
+        elif filled != len(data):
+            raise AssertionError("J_l's entries and its sparsity pattern disagree")
+        else:
+            J_l = sp.csr_matrix((data, *pattern[1:]), shape=(len(r), Pl))
         return (r, J_g, J_l, sig) if signals else (r, J_g, J_l)
 
-    def _local_jacobian(self, trip: list, vv: np.ndarray, N: int, Pl: int) -> sp.csr_matrix:
-        """J_l (N, Pl) CSR from the entries' values ``vv``. Its sparsity does not change between
-        evaluations: the first one sorts the entries into CSR order and keeps that order (when no
-        entry repeats a row and column), later ones only permute the values."""
-        pat = self.__dict__.get("_jl_pattern")
-        if pat is None or pat[0] != len(vv):
-            width = max(Pl, 1)
-            keys = [np.asarray(rr, np.int64) * width + cc for rr, cc in
-                    (t[0]() if t[1] is None else (t[0], t[1]) for t in trip)]
-            key = np.concatenate(keys) if keys else np.zeros(0, np.int64)  # one sort key: 7x faster than lexsort
-            del keys
-            order = np.argsort(key, kind="stable")
-            key = key[order]  # row-major: each row's entries in column order
-            if len(key) > 1 and np.any(key[1:] == key[:-1]):  # repeats add up
-                return sp.csr_matrix((vv[order], (key // width, key % width)), shape=(N, Pl))
-            idx = np.int32 if max(N, Pl, len(vv)) < 2**31 else np.int64
-            indptr = np.searchsorted(key, np.arange(N + 1) * width).astype(idx)
-            pat = (len(vv), order.astype(idx), (key % width).astype(idx), indptr)
-            self.__dict__["_jl_pattern"] = pat
-        _, order, indices, indptr = pat
+    def _local_jacobian(self, trip: list, N: int, Pl: int) -> sp.csr_matrix:
+        """J_l (N, Pl) CSR from its entries ``trip`` (rows, columns, values). Its sparsity does not
+        change between evaluations: this first one sorts the entries into CSR order and keeps
+        each entry's place (when no entry repeats a row and column), where later evaluations
+        write their values (``residuals``)."""
+        vv = np.concatenate([t[2] for t in trip]) if trip else np.zeros(0)
+        width = max(Pl, 1)
+        keys = [np.asarray(rr, np.int64) * width + cc for rr, cc in
+                (t[0]() if t[1] is None else (t[0], t[1]) for t in trip)]
+        key = np.concatenate(keys) if keys else np.zeros(0, np.int64)  # one sort key: 7x faster than lexsort
+        del keys
+        order = np.argsort(key, kind="stable")
+        key = key[order]  # row-major: each row's entries in column order
+        if len(key) > 1 and np.any(key[1:] == key[:-1]):  # repeats add up
+            return sp.csr_matrix((vv[order], (key // width, key % width)), shape=(N, Pl))
+        idx = np.int32 if max(N, Pl, len(vv)) < 2**31 else np.int64
+        indptr = np.searchsorted(key, np.arange(N + 1) * width).astype(idx)
+        indices = (key % width).astype(idx)
+        del key
+        place = np.empty(len(order), idx)
+        place[order] = np.arange(len(order), dtype=idx)
+        self.__dict__["_jl_pattern"] = (place, indices, indptr)
         return sp.csr_matrix((vv[order], indices, indptr), shape=(N, Pl))
 
     def _gyro_cols(self, j: np.ndarray) -> tuple[list[tuple[str | None, np.ndarray]], np.ndarray]:
