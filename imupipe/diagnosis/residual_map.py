@@ -20,6 +20,7 @@ few false alarms) and isolated events join the map as events.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -360,16 +361,18 @@ def change_points(ev: Evaluation, penalty_sd: float = 4.0) -> list[Event]:
     return out
 
 
-def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR, extra: tuple[RowSet, ...] = ()) -> dict:
-    """The ``residual_map.json`` document of ``spec/contracts.md`` for an evaluation; ``extra``:
+def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR,
+                 extra: Callable[[], tuple[RowSet, ...]] = tuple) -> dict:
+    """The ``residual_map.json`` document of ``spec/contracts.md`` for an evaluation; ``extra()``:
     rows of triads outside the per-sample model (the magnetometer's, ``magnetic``)."""
     from .library import structure_cells  # it builds on select, which builds on this module
 
     structure = structure_cells(ev.lin)  # first: its working memory is free again for the rows' cells
     model_rs = model_rows(ev)
     noise_rs = rest_scatter_rows(ev)
+    extra_rs = extra()  # after the structure cells, whose working memory is then free
     all_cells = cells(model_rs) + cells(noise_rs) + structure
-    for rs in extra:
+    for rs in extra_rs:
         all_cells += cells(rs)
     p = np.array([c.p_value for c in all_cells])
     flagged = benjamini_hochberg(p, q)
@@ -387,7 +390,7 @@ def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR, extra: tup
                        "chi2_per_dof": b["chi2_per_dof"], "rows": b["rows"]})
         if name in ev.white_chi2 and b["dof"] > 0:  # before the recording's own (coloured) noise model
             blocks[-1]["chi2_per_dof_white"] = ev.white_chi2[name] / b["dof"]
-    for sc in (noise_rs, *extra):
+    for sc in (noise_rs, *extra_rs):
         for sensor, regime in sorted(set(zip(sc.sensor, sc.regime))):
             m = (sc.sensor == sensor) & (sc.regime == regime)
             c2, dof = float((sc.r[m] ** 2).sum()), float(sc.w[m].sum())

@@ -132,7 +132,7 @@ def map_residuals(inputs: Mapping[str, pa.Table], params: MapParams, solver: Bou
     from ..diagnosis.residual_map import residual_map
 
     ev = evaluation(inputs, params)
-    doc = residual_map(ev, q=params.fdr_q, extra=magnetometer_rows(inputs, ev))
+    doc = residual_map(ev, q=params.fdr_q, extra=lambda: magnetometer_rows(inputs, ev))
     meta = {MAP_KEY.decode(): json.dumps(doc)}
     return {"samples": ev.samples, "map": schemas.stamp(_cell_table(doc["cells"]), "residual_map", meta)}
 
@@ -178,7 +178,7 @@ def diagnose_session(inputs: Mapping[str, pa.Table], params: MapParams, solver: 
     from ..plugins import make_registry
 
     ev = evaluation(inputs, params)
-    doc = residual_map(ev, q=params.fdr_q, extra=magnetometer_rows(inputs, ev))
+    doc = residual_map(ev, q=params.fdr_q, extra=lambda: magnetometer_rows(inputs, ev))
     registry = make_registry()
     effects = {name: registry.get("effects", name) for name in registry.names("effects")}
     diag = diagnose(ev, doc, effects, q=params.fdr_q, latitude_deg=params.latitude_deg)
