@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from imupipe.solvers.blocktri import BlockTridiagonal, Bordered, solve_least_squares
+from imupipe.solvers.blocktri import BlockTridiagonal, Bordered, _gram, solve_least_squares
 
 
 def _chain(rng, sizes, rows_per_stage=7, p=4):
@@ -54,6 +54,10 @@ def test_bordered_covariance_and_leverage_match_dense():
     h = sys.leverage()
     assert np.allclose(h, np.einsum("ij,jk,ik->i", J, Ainv, J), rtol=1e-9, atol=1e-12)
     assert np.isclose(h.sum(), J.shape[1])
+    # a long recording's rows are taken in chunks: the same numbers as all at once
+    assert np.allclose(sys.leverage(chunk=5), h, rtol=1e-12, atol=1e-15)
+    assert np.allclose(sys.blocks.row_forms(J_l, chunk=3), sys.blocks.row_forms(J_l, chunk=len(J)), rtol=1e-12)
+    assert abs(_gram(J_l, chunk=4) - (J_l.T @ J_l)).max() < 1e-12
     r = rng.normal(size=len(J))
     d_g, d_l = sys.step(r)
     assert np.allclose(np.concatenate([d_g, d_l]), -np.linalg.solve(A, J.T @ r), rtol=1e-9)
