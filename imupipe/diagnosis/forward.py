@@ -511,7 +511,6 @@ class JointModel:
         out = np.zeros((n_turn + 3 * len(self.accel.t), dy.shape[2]))
         if not self.m:
             return out
-        WS = -self.g * self.W_sample @ P["S_a"]  # d r / d (gravity in the body)
         W_end = np.stack([W[-1] for W in self.Qk_w])
         ends = (np.cumsum(2 * self.K) - 2)[:, None] + np.arange(2)  # (m, 2) each motion's last interval
         samples = (n_turn + np.arange(len(out) - n_turn)).reshape(-1, 3)
@@ -525,10 +524,10 @@ class JointModel:
             if not len(samples):
                 continue
             if geo is None:  # zK does not depend on the columns
-                geo = self._sample_geometry(x_l, zK, att)
+                geo = self._sample_geometry(P, x_l, zK, att)
             for b in range(0, len(samples), SAMPLE_CHUNK):
                 n_c = len(samples[b:b + SAMPLE_CHUNK])
-                out[samples[b:b + n_c], cols] = self._sample_rate_rows(geo, att, D, dz_gyro, WS, b, n_c)[1]
+                out[samples[b:b + n_c], cols] = self._sample_rate_rows(geo, att, D, dz_gyro, b, n_c)[1]
         return out
 
     def turn_view(self, x_g: np.ndarray, x_l: np.ndarray) -> dict[str, np.ndarray]:
@@ -843,11 +842,12 @@ class JointModel:
         self.__dict__["_layout"] = lay
         return lay
 
-    def _sample_geometry(self, x_l: np.ndarray, zK: np.ndarray, att: Attitude) -> dict[str, np.ndarray]:
+    def _sample_geometry(self, P: dict, x_l: np.ndarray, zK: np.ndarray, att: Attitude) -> dict[str, np.ndarray]:
         """Where each motion sample's gravity comes from: its rotation ``R`` (k, 3, 3) from the
         motion's start, the start-frame direction ``nvec`` (k, 3) of the gnomonic point
         interpolated between its knots (weight ``mu``; ``last``: on the motion's last interval)
-        and its derivative ``dn`` (k, 3, 3), the point's basis ``Bp`` (k, 3, 2)."""
+        and its derivative ``dn`` (k, 3, 3), the point's basis ``Bp`` (k, 3, 2); ``WS`` (3, 3)
+        the whitened residual's derivative w.r.t. gravity in the body."""
         acc = self.accel
         k = len(acc.t)
         j = acc.motion
@@ -872,9 +872,9 @@ class JointModel:
         last = np.zeros(k, bool)
         last[lay["where_last"]] = True
         return {"R": att.rotation_at(self.accel_points), "nvec": nvec, "dn": dn, "Bp": Bp, "mu": mu,
-                "last": last}
+                "last": last, "WS": -self.g * self.W_sample @ P["S_a"]}
 
-    def _sample_rate_rows(self, geo: dict, att: Attitude, D, dz_gyro: np.ndarray, WS: np.ndarray,
+    def _sample_rate_rows(self, geo: dict, att: Attitude, D, dz_gyro: np.ndarray,
                           a: int, n_c: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For motion samples ``a`` to ``a + n_c``: d r / d z (n_c, 3, 2) of their rows, d r / d
         (the rate derivatives ``D``' parameters) (n_c, 3, P) through the attitude at the sample and,
@@ -882,6 +882,7 @@ class JointModel:
         c = slice(a, a + n_c)
         Rt = np.swapaxes(geo["R"][c], 1, 2)  # (stacked matmul: far faster than einsum here)
         Phi = att.sensitivity(D, self.accel_points.subset(np.arange(a, a + n_c)))  # (c, 3, P)
+        WS = geo["WS"]
         dr_dz = WS @ (Rt @ geo["dn"][c] @ geo["Bp"][c])  # d r / d z (c, 3, 2)
         dr_gyro = (WS @ (Rt @ skew(geo["nvec"][c]))) @ Phi  # (c, 3, P)
         del Phi
@@ -895,8 +896,8 @@ class JointModel:
         k = len(acc.t)
         j = acc.motion
         p, q = self.p[j], self.qr[j]
-        Pg, gl, g, S_a = self.glob.size, self.glob.slices, self.g, P["S_a"]
-        geo = self._sample_geometry(x_l, zK, att)
+        Pg, gl, g = self.glob.size, self.glob.slices, self.g
+        geo = self._sample_geometry(P, x_l, zK, att)
         lay = self._sample_layout()
         mu = lay["mu"]
         ub = (np.swapaxes(geo["R"], 1, 2) @ geo["nvec"][:, :, None])[:, :, 0]  # gravity in the body at the sample
@@ -914,12 +915,11 @@ class JointModel:
         s0 = block(r.ravel(), None)
         if Jg is not None:  # M_g and b_g are adjacent columns, k_g apart (cols_g: their 15, -1 where absent)
             assert np.array_equal(cols_g[:12], np.arange(gl["M_g"].start, gl["b_g"].stop))
-        WS = -g * self.W_sample @ S_a  # d r / d ub
         WL = np.einsum("ij,ljm->ilm", self.W_sample, _LOWER)  # (3, 6, 3)
         for a in range(0, k, SAMPLE_CHUNK):  # the derivatives of SAMPLE_CHUNK samples at a time
             c = slice(a, a + SAMPLE_CHUNK)
             n_c = len(acc.t[c])
-            dr_dz, dr_gyro, end = self._sample_rate_rows(geo, att, D, dz_gyro, WS, a, n_c)
+            dr_dz, dr_gyro, end = self._sample_rate_rows(geo, att, D, dz_gyro, a, n_c)
             jc, mc = j[c], mu[c]
             if Jg is not None:
                 Jc = Jg[c]

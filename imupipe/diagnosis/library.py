@@ -243,7 +243,7 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
         _, blocks = np.unique(time_blocks(lin), return_inverse=True)
         Gr = sp.csc_matrix((r_use, (blocks, np.arange(N))), shape=(blocks.max() + 1, N))  # sliced by rows of the fit
         S_g, S_l = Gr @ lin.J_g, Gr @ lin.J_l
-    libs = libraries(s)  # first: forming its gyro columns evaluates the model, which the rigid system would sit on
+    libs = libraries(s)  # first: forming its gyro columns takes more memory than the rigid system, kept beside them
     rigid = rigid_walks(lin)[0]
     out = []
     draws = bootstrap_draws(len(libs) * (1 + len(AXES)), level)

@@ -29,6 +29,8 @@ from scipy.linalg import cho_solve, cholesky, solve_triangular
 
 from ..errors import SolverError
 
+ROW_CHUNK = 1 << 16  # rows of a Jacobian taken at once where a product would copy it whole (memory)
+
 
 @dataclass
 class BlockTridiagonal:
@@ -213,7 +215,7 @@ class BlockTridiagonal:
                              shape=(self.size, self.size))
 
 
-def _gram(J: sp.csr_matrix, chunk: int = 1 << 16) -> sp.csr_matrix:
+def _gram(J: sp.csr_matrix, chunk: int = ROW_CHUNK) -> sp.csr_matrix:
     """``J^T J`` summed over chunks of rows: the product transposes its operand, and a chunk's
     copy is small where a whole long recording's Jacobian is not."""
     A = sp.csr_matrix((J.shape[1], J.shape[1]))
@@ -269,7 +271,7 @@ class Bordered:
         """(p, p) ``(A^-1)_gg = S^-1``: the globals' covariance with every local marginalised."""
         return cho_solve((self._S_chol, True), np.eye(len(self.S))) if len(self.S) else self.S
 
-    def leverage(self, chunk: int = 1 << 16) -> np.ndarray:
+    def leverage(self, chunk: int = ROW_CHUNK) -> np.ndarray:
         """(N,) ``diag(J A^-1 J^T)``, exact: ``a^T A_ll^-1 a + (g - X^T a)^T S^-1 (g - X^T a)``
         per row, the first term from the selected inverse (rows touch two stages at most)."""
         J_l = self.J_l
