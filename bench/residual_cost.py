@@ -41,9 +41,13 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args()
-    folder = Path(tempfile.mkdtemp(prefix="residual-cost-"))
+    with tempfile.TemporaryDirectory(prefix="residual-cost-") as folder:  # ~0.5 GB: removed after
+        measure(Path(folder), args.seed, args.repeat)
+
+
+def measure(folder: Path, seed: int, repeat: int) -> None:
     session = folder / "standard.mcap"
-    simulate("standard", {}, args.seed, session, quiet=True)
+    simulate("standard", {}, seed, session, quiet=True)
     out = folder / "out"
     exe = [sys.executable, "-m", "imupipe.cli"]
     timed([*exe, "run", str(session), "--out", str(out), "--quiet"])
@@ -52,7 +56,7 @@ def main() -> None:
     samples = run["stream_facts"]["accel"]["samples"]
     rate = run["stream_facts"]["accel"]["rate_hz"]
     maps, ingests = [], []
-    for k in range(args.repeat):
+    for k in range(repeat):
         fdr = f"map.fdr_q={0.05 + 1e-6 * (k + 1)}"  # a new value each time: only the map stage reruns
         c, w = timed([*exe, "run", str(session), "--set", fdr, "--out", str(out), "--quiet"])
         stage = json.loads((out / "standard" / "run.json").read_text())["stages"]["map"]
