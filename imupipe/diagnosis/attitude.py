@@ -31,6 +31,7 @@ import scipy.sparse as sp
 from ..rotations import quat_exp, quat_mul, quat_to_matrix, skew
 
 _SMALL = 1e-4
+STEP_CHUNK = 1 << 14  # steps whose sensitivities are formed at once (temporaries of a few MiB: memory)
 
 
 def left_jacobian(a: np.ndarray) -> np.ndarray:
@@ -48,6 +49,17 @@ def left_jacobian(a: np.ndarray) -> np.ndarray:
 def _run_bounds(seg: np.ndarray) -> np.ndarray:
     """(runs + 1,) where each run of equal ``seg`` (n,) values starts, then n (n > 0)."""
     return np.flatnonzero(np.r_[True, seg[1:] != seg[:-1], True])
+
+
+def _whole_runs(seg: np.ndarray, size: int) -> list[tuple[int, int]]:
+    """Consecutive ranges of whole runs of equal ``seg``, each about ``size`` long or one run."""
+    ranges, a = [], 0
+    bounds = _run_bounds(seg) if len(seg) else []
+    for b in bounds[1:]:
+        if b - a >= size or b == bounds[-1]:
+            ranges.append((a, int(b)))
+            a = int(b)
+    return ranges
 
 
 def segmented_scan(q: np.ndarray, seg: np.ndarray) -> np.ndarray:
@@ -187,7 +199,8 @@ class Points:
 
 class Quadrature:
     """What integrating the motions needs from the time stamps alone (computed once): the steps
-    (``step`` (S,) the first sample of each) and their weights ``A`` (S, N)."""
+    (``step`` (S,) the first sample of each), their weights ``A`` (S, N) and ``ranges`` of whole
+    motions' steps, each about ``STEP_CHUNK`` long, to form their sensitivities by."""
 
     def __init__(self, samples: MotionSamples):
         self.samples = samples
@@ -199,6 +212,7 @@ class Quadrature:
                             samples.t[self.step + 1] - samples.t[self.step])
         self.last = np.flatnonzero(np.r_[self.seg[1:] != self.seg[:-1], True]) if len(self.step) else \
             np.zeros(0, int)
+        self.ranges = _whole_runs(self.seg, STEP_CHUNK)
 
     def points(self, t: np.ndarray, motion: np.ndarray) -> Points:
         """The instants ``t`` (k,) s of motions ``motion`` (k,) (clipped to each motion's span)."""
@@ -258,25 +272,30 @@ class Attitude:
         R0 = np.where((pts.h >= 0)[:, None, None], R0, np.eye(3))
         return R0 @ quat_to_matrix(quat_exp(pts.W @ self.omega))
 
-    def _per_step(self, D: np.ndarray) -> np.ndarray:
-        """(S, 3, P) each step's attitude change per unit parameter change, start frame."""
-        P = D.shape[2]
-        C = self.R_before @ left_jacobian(self.a)
-        return C @ weighted(self.quad.A, D)
-
-    def _steps_and_sums(self, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The running sums of ``_per_step(D)`` within each motion before each step (S, 3, P) and
-        through each motion's last step (m', 3, P), kept for the last ``D`` (the end-points and
-        the samples of one residual evaluation share them)."""
+    def _steps_and_sums(self, D: np.ndarray, before: bool = True) -> tuple[np.ndarray | None, np.ndarray]:
+        """The running sums within each motion, before each step, of each step's start-frame
+        attitude change per unit parameter change (S, 3, P) (``before=False``: None) and their
+        totals through each motion's last step (m', 3, P); by ranges of steps, so temporaries
+        stay small. Kept for the last ``D`` when ``before`` (the end-points and the samples of
+        one residual evaluation share them)."""
         memo = self.__dict__.get("_memo")
-        if memo is None or memo[0] is not D:
-            per = self._per_step(D)
-            cum = segmented_cumsum(per, self.quad.seg)
-            last = cum[self.quad.last]
-            cum -= per
-            memo = (D, cum, last)
-            object.__setattr__(self, "_memo", memo)
-        return memo[1], memo[2]
+        if memo is not None and memo[0] is D:
+            return memo[1], memo[2]
+        quad = self.quad
+        P = D.shape[2]
+        cum = np.empty((len(self.a), 3, P)) if before else None
+        last = np.empty((len(quad.last), 3, P))
+        for a, b in quad.ranges:
+            s = slice(a, b)
+            per = (self.R_before[s] @ left_jacobian(self.a[s])) @ weighted(quad.A[s], D)
+            run = segmented_cumsum(per, quad.seg[s])
+            ends = slice(*np.searchsorted(quad.last, [a, b]))
+            last[ends] = run[quad.last[ends] - a]
+            if before:
+                np.subtract(run, per, out=cum[s])
+        if before:
+            object.__setattr__(self, "_memo", (D, cum, last))
+        return cum, last
 
     def sensitivity(self, D: np.ndarray, pts: Points) -> np.ndarray:
         """(k, 3, P) start-frame attitude change per unit change of parameters at the instants
@@ -294,9 +313,10 @@ class Attitude:
         out[pts.h < 0] = 0.0
         return out
 
-    def end_sensitivity(self, D: np.ndarray) -> np.ndarray:
-        """(m, 3, P) the same at each motion's last sample (zeros for motions without steps)."""
+    def end_sensitivity(self, D: np.ndarray, before: bool = False) -> np.ndarray:
+        """(m, 3, P) the same at each motion's last sample (zeros for motions without steps);
+        ``before``: also keep the sums before every step for ``sensitivity`` with this ``D``."""
         out = np.zeros((self.quad.samples.count, 3, D.shape[2]))
         if len(self.a):
-            out[self.quad.seg[self.quad.last]] = self._steps_and_sums(D)[1]
+            out[self.quad.seg[self.quad.last]] = self._steps_and_sums(D, before)[1]
         return out

@@ -490,10 +490,15 @@ class JointModel:
         if not jacobian:
             return zK, None, None, att, None, omega, u, du
         G = (np.swapaxes(Bp, 1, 2) - np.einsum("ma,mi->mai", zK, u0p)) / den[:, None, None]  # dz/dw
-        phi_T = att.end_sensitivity(D)  # (m, 3, 21)
+        phi_T = att.end_sensitivity(D, before=self.has_samples)  # (m, 3, 21)
         dz_gyro = np.einsum("mai,mij,mjp->map", G, -skew(w), phi_T)  # (m, 2, 21)
         dz_dq = np.einsum("mai,mij,mjk->mak", G, att.total, du[self.qr])  # (m, 2, 2)
         return zK, dz_gyro, dz_dq, att, D, omega, u, du
+
+    @property
+    def has_samples(self) -> bool:
+        """Whether the motions' accelerometer samples have rows (their attitude's sensitivities)."""
+        return bool(self.sampled and len(self.accel.t))
 
     @property
     def motion_rows(self) -> np.ndarray:
@@ -799,7 +804,7 @@ class JointModel:
                   Wl @ dz_dq[j])
             local(np.repeat(rows[-1][:, None], 6, 1), np.repeat(cols_l[j][None, :], 2, 0),
                   (Wl @ dz_gyro[j])[:, -6:])
-        if not (self.sampled and len(self.accel.t)):
+        if not self.has_samples:
             return
         self._sample_rows(P, x_l, zK, dz_gyro, dz_dq, att, D, u, block, local, sig, cols_g, jac)
 

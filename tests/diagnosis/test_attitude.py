@@ -141,3 +141,24 @@ def test_by_motion_slices_are_the_masks_of_sorted_labels():
     for j, sel in enumerate(slices):
         assert np.array_equal(np.arange(len(motion))[sel], np.flatnonzero(motion == j))
     assert [s.stop - s.start for s in by_motion(np.zeros(0, int), 2)] == [0, 0]
+
+
+def test_sensitivities_formed_by_ranges_of_steps_equal_them_formed_at_once(monkeypatch):
+    import imupipe.diagnosis.attitude as attitude
+
+    rng = np.random.default_rng(3)
+    ms = MotionSamples.from_turns(*_motions(rng, m=6))
+    D = rng.normal(size=(len(ms), 3, 5))
+    got = []
+    for size in (1 << 20, 20):  # one range; ranges of whole motions, about 20 steps each
+        monkeypatch.setattr(attitude, "STEP_CHUNK", size)
+        quad = Quadrature(ms)
+        att = Attitude.integrate(quad, ms.y * 0.5)
+        pts = quad.points(ms.t[::2] + 0.002, ms.motion[::2])
+        got.append((att.end_sensitivity(D, before=True), att.sensitivity(D, pts)))
+        starts = np.flatnonzero(np.r_[True, quad.seg[1:] != quad.seg[:-1]])
+        assert [a for a, _ in quad.ranges] == sorted(set(a for a, _ in quad.ranges) & set(starts))
+        assert quad.ranges[-1][1] == len(quad.step)
+    assert len(quad.ranges) > 2
+    for whole, ranged in zip(*got, strict=True):
+        assert np.allclose(whole, ranged, rtol=1e-13, atol=1e-13)
