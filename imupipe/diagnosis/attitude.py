@@ -93,7 +93,16 @@ def _integrals(t: np.ndarray, motion: np.ndarray, s: np.ndarray, tau: np.ndarray
                width: int = 6) -> sp.csr_matrix:
     """(k, N) weights of the integral of the rate from sample ``s`` (k,) to ``tau`` (k,) s after it:
     the integral of the polynomial through ``width`` samples of the motion around the step
-    (centred where the motion allows), exact for rates of degree ``width - 1``."""
+    (centred where the motion allows), exact for rates of degree ``width - 1``; ``STEP_CHUNK``
+    rows at a time (their temporaries are ``width``^2 per row)."""
+    k, N = len(s), len(t)
+    if k <= STEP_CHUNK:
+        return _integral_rows(t, motion, s, tau, width)
+    return sp.vstack([_integral_rows(t, motion, s[a:a + STEP_CHUNK], tau[a:a + STEP_CHUNK], width)
+                      for a in range(0, k, STEP_CHUNK)], format="csr")
+
+
+def _integral_rows(t: np.ndarray, motion: np.ndarray, s: np.ndarray, tau: np.ndarray, width: int) -> sp.csr_matrix:
     k, N = len(s), len(t)
     if not k:
         return sp.csr_matrix((0, N))
@@ -255,22 +264,29 @@ class Attitude:
     def integrate(cls, quad: Quadrature, omega: np.ndarray) -> Attitude:
         a = quad.A @ omega if len(quad.step) else np.zeros((0, 3))
         seg = quad.seg
-        q = segmented_scan(quat_exp(a), seg)  # after each step
-        first = np.r_[True, seg[1:] != seg[:-1]] if len(seg) else np.zeros(0, bool)
-        prev = np.vstack([[[1.0, 0, 0, 0]], q[:-1]]) if len(seg) else np.zeros((0, 4))
-        prev[first] = [1.0, 0.0, 0.0, 0.0]
+        R_before = np.empty((len(a), 3, 3))
         total = np.tile(np.eye(3), (quad.samples.count, 1, 1))
-        if len(seg):
-            total[seg[quad.last]] = quat_to_matrix(q[quad.last])
-        return cls(quad, omega, a, quat_to_matrix(prev), total)
+        for lo, hi in quad.ranges:  # whole motions: a product never crosses a range's edge
+            q = segmented_scan(quat_exp(a[lo:hi]), seg[lo:hi])  # after each step
+            prev = np.vstack([[[1.0, 0, 0, 0]], q[:-1]])
+            prev[np.r_[True, seg[lo + 1:hi] != seg[lo:hi - 1]]] = [1.0, 0.0, 0.0, 0.0]
+            R_before[lo:hi] = quat_to_matrix(prev)
+            ends = slice(*np.searchsorted(quad.last, [lo, hi]))
+            total[seg[quad.last[ends]]] = quat_to_matrix(q[quad.last[ends] - lo])
+        return cls(quad, omega, a, R_before, total)
 
     def rotation_at(self, pts: Points) -> np.ndarray:
         """(k, 3, 3) rotation (body at the instant -> body at the motion's start)."""
         if not len(pts.h):
             return np.zeros((0, 3, 3))
-        R0 = self.R_before[np.maximum(pts.h, 0)] if len(self.a) else np.tile(np.eye(3), (len(pts.h), 1, 1))
-        R0 = np.where((pts.h >= 0)[:, None, None], R0, np.eye(3))
-        return R0 @ quat_to_matrix(quat_exp(pts.W @ self.omega))
+        out = np.empty((len(pts.h), 3, 3))
+        for a in range(0, len(pts.h), STEP_CHUNK):
+            c = slice(a, a + STEP_CHUNK)
+            h = pts.h[c]
+            R0 = self.R_before[np.maximum(h, 0)] if len(self.a) else np.tile(np.eye(3), (len(h), 1, 1))
+            R0 = np.where((h >= 0)[:, None, None], R0, np.eye(3))
+            np.matmul(R0, quat_to_matrix(quat_exp(pts.W[c] @ self.omega)), out=out[c])
+        return out
 
     def _steps_and_sums(self, D: np.ndarray, before: bool = True) -> tuple[np.ndarray | None, np.ndarray]:
         """The running sums within each motion, before each step, of each step's start-frame

@@ -143,19 +143,20 @@ def test_by_motion_slices_are_the_masks_of_sorted_labels():
     assert [s.stop - s.start for s in by_motion(np.zeros(0, int), 2)] == [0, 0]
 
 
-def test_sensitivities_formed_by_ranges_of_steps_equal_them_formed_at_once(monkeypatch):
+def test_attitude_formed_by_ranges_of_steps_equals_it_formed_at_once(monkeypatch):
     import imupipe.diagnosis.attitude as attitude
 
     rng = np.random.default_rng(3)
     ms = MotionSamples.from_turns(*_motions(rng, m=6))
     D = rng.normal(size=(len(ms), 3, 5))
     got = []
-    for size in (1 << 20, 20):  # one range; ranges of whole motions, about 20 steps each
+    for size in (1 << 20, 20):  # at once; by 20 rows, or ranges of whole motions about 20 steps long
         monkeypatch.setattr(attitude, "STEP_CHUNK", size)
         quad = Quadrature(ms)
         att = Attitude.integrate(quad, ms.y * 0.5)
         pts = quad.points(ms.t[::2] + 0.002, ms.motion[::2])
-        got.append((att.end_sensitivity(D, before=True), att.sensitivity(D, pts)))
+        got.append((quad.A.toarray(), pts.W.toarray(), att.R_before, att.total, att.rotation_at(pts),
+                    att.end_sensitivity(D, before=True), att.sensitivity(D, pts)))
         starts = np.flatnonzero(np.r_[True, quad.seg[1:] != quad.seg[:-1]])
         assert [a for a, _ in quad.ranges] == sorted(set(a for a, _ in quad.ranges) & set(starts))
         assert quad.ranges[-1][1] == len(quad.step)
