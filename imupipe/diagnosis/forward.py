@@ -603,23 +603,36 @@ class JointModel:
 
     # ------------------------------------------------------------------ residuals
     def residuals(self, x_g: np.ndarray, x_l: np.ndarray, signals: bool = False, jacobian: bool = True,
-                  with_globals: bool = True):
+                  with_globals: bool = True, out: tuple | None = None):
         """Whitened residual ``r`` (N,), ``J_g`` (N, P_g) dense, ``J_l`` (N, P_l) CSR; with
         ``signals`` also a dict of the model's intermediate quantities (predictions, gravity);
         ``jacobian=False``: the residual alone (None for both Jacobians, far cheaper);
-        ``with_globals=False``: ``J_g`` has no columns (a fit of the nuisances alone)."""
+        ``with_globals=False``: ``J_g`` has no columns (a fit of the nuisances alone); ``out``:
+        ``(J_g, J_l)`` of an earlier evaluation the caller gives up, written over where they fit
+        (no fresh memory per step of a fit)."""
         P = self.unpack(x_g)
         n, g, gl = self.n, self.g, self.glob.slices
         Pg, Pl = self.glob.size, self.stages.size
         S_a = P["S_a"]
         r_parts, trip = [], []
         row0 = 0
+        N = len(self.rows.block)
+        old_g, old_l = out if out is not None else (None, None)
         # J_l's values go straight to their CSR places once the model knows its sparsity
         pattern = self.__dict__.get("_jl_pattern") if jacobian else None
-        data = np.empty(len(pattern[0])) if pattern is not None else None
+        data = None
+        if pattern is not None:
+            same = old_l is not None and old_l.shape == (N, Pl) and old_l.nnz == len(pattern[0])
+            data = old_l.data if same else np.empty(len(pattern[0]))
         filled = 0
         # the globals' Jacobian is written in place, block by block (no stacked copy)
-        J_g = np.zeros((len(self.rows.block), Pg if with_globals else 0)) if jacobian else None
+        J_g = None
+        if jacobian:
+            shape = (N, Pg if with_globals else 0)
+            J_g = old_g if old_g is not None and old_g.shape == shape else np.zeros(shape)
+            if J_g is old_g:
+                J_g.fill(0.0)
+        del out, old_g, old_l
 
         def block(r: np.ndarray, Jg: np.ndarray | None) -> int:
             """Append rows ``r`` and their ``Jg`` (None: zero, or already written through

@@ -112,7 +112,8 @@ def fit(model: JointModel, max_iter: int = 30, x_g: np.ndarray | None = None,
     x_l = model.x_l0.copy() if x_l is None else np.asarray(x_l, float)
     offsets = model.stages.offsets
     local_only = fixed_globals and not leverage
-    residuals = (lambda g, l: model.residuals(g, l, with_globals=False)) if local_only else model.residuals
+    residuals = (lambda g, l, out=None: model.residuals(g, l, with_globals=False, out=out)) if local_only \
+        else model.residuals
     x_g, x_l, r, J_g, J_l, it, ok = solve_least_squares(
         residuals, x_g, x_l, offsets, max_iter=max_iter, tol=tol, fixed_globals=fixed_globals,
         residual=lambda g, l: model.residuals(g, l, jacobian=False)[0])

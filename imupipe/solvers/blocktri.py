@@ -294,7 +294,8 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
     polishes the solution (the damping would otherwise leave it ~1e-8 short). ``fixed_globals``:
     only the locals move; ``J_g`` is still returned at the optimum. ``residual(x_g, x_l) -> r``
     (optional) judges the trial points: the Jacobians are then formed only where a step is
-    taken, after the old ones are freed (one set in memory, not two).
+    taken, over the old ones (``residuals(x_g, x_l, out=(J_g, J_l))``: one set in memory, and
+    no fresh pages for the kernel to clear at every step).
     """
     def step(J_g: np.ndarray, J_l: sp.csr_matrix, r: np.ndarray, lam: float) -> tuple[np.ndarray, np.ndarray]:
         d_g, d_l = Bordered(J_g[:, :0] if fixed_globals else J_g, J_l, offsets, damping=lam).step(r)
@@ -302,6 +303,10 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
 
     def trial(g: np.ndarray, l: np.ndarray) -> tuple:
         return residuals(g, l) if residual is None else (residual(g, l), None, None)
+
+    def over(J_g: np.ndarray, J_l: sp.csr_matrix, g: np.ndarray, l: np.ndarray) -> tuple:
+        """The Jacobians at an accepted point, written over ``J_g``, ``J_l``."""
+        return residuals(g, l, out=(J_g, J_l))[1:]
 
     r, J_g, J_l = residuals(x_g, x_l)
     cost = float(r @ r)
@@ -324,8 +329,7 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
         decrease = (cost - cost2) / max(cost, 1e-300)
         x_g, x_l, cost = cand_g, cand_l, cost2
         if J_g2 is None:
-            J_g = J_l = None
-            J_g2, J_l2 = residuals(x_g, x_l)[1:]
+            J_g2, J_l2 = over(J_g, J_l, x_g, x_l)
         r, J_g, J_l = r2, J_g2, J_l2
         lam = max(lam / 10.0, 1e-12)
         if decrease < tol:
@@ -337,7 +341,6 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
         if np.isfinite(r2 @ r2) and float(r2 @ r2) <= cost:
             x_g, x_l, r = x_g + d_g, x_l + d_l, r2
             if J_g2 is None:
-                J_g = J_l = None
-                J_g2, J_l2 = residuals(x_g, x_l)[1:]
+                J_g2, J_l2 = over(J_g, J_l, x_g, x_l)
             J_g, J_l = J_g2, J_l2
     return x_g, x_l, r, J_g, J_l, it, converged

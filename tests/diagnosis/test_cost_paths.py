@@ -1,6 +1,6 @@
 """The residual engine's cheap paths give the numbers of the plain ones: the residual without its
 Jacobian, the factored rate derivatives, J_l from its cached sparsity, the fixed-globals fit's
-Jacobian, the reused quadrature (issue 13: results identical within 1e-9 relative)."""
+Jacobian, the Jacobians written over old ones, the reused quadrature (issue 13: results identical within 1e-9 relative)."""
 
 from __future__ import annotations
 
@@ -55,6 +55,18 @@ def test_local_jacobian_from_the_cached_sparsity_equals_a_fresh_one(model):
     _, _, fresh = m.residuals(x_g, x_l)
     assert (cached != fresh).nnz == 0
     assert np.array_equal(cached.indptr, fresh.indptr) and np.array_equal(cached.indices, fresh.indices)
+
+
+def test_jacobians_written_over_earlier_ones_equal_fresh_ones(model):
+    m, _ = model
+    x_g, x_l = _point(m, 4)
+    _, J_g, J_l = m.residuals(*_point(m, 5))  # an earlier step's, given up
+    r, over_g, over_l = m.residuals(x_g, x_l, out=(J_g, J_l))
+    r0, fresh_g, fresh_l = m.residuals(x_g, x_l)
+    assert over_g is J_g and np.shares_memory(over_l.data, J_l.data)  # no fresh memory
+    assert np.array_equal(r, r0) and np.array_equal(over_g, fresh_g) and (over_l != fresh_l).nnz == 0
+    _, wrong_g, _ = m.residuals(x_g, x_l, with_globals=False, out=(fresh_g, fresh_l))  # other shape
+    assert wrong_g.shape == (len(r), 0) and np.array_equal(fresh_g, over_g)
 
 
 def test_factored_rate_derivatives_weigh_like_the_dense_ones(model):
