@@ -31,7 +31,9 @@ import scipy.sparse as sp
 from ..rotations import quat_exp, quat_mul, quat_to_matrix, skew
 
 _SMALL = 1e-4
-STEP_CHUNK = 1 << 14  # steps whose sensitivities are formed at once (temporaries of a few MiB: memory)
+# steps (or instants) whose attitude quantities are formed at once: temporaries of a few MiB, which the
+# allocator reuses, where whole-recording ones are fresh pages the kernel clears every time
+STEP_CHUNK = 1 << 14
 
 
 def left_jacobian(a: np.ndarray) -> np.ndarray:
@@ -95,14 +97,14 @@ def _integrals(t: np.ndarray, motion: np.ndarray, s: np.ndarray, tau: np.ndarray
     the integral of the polynomial through ``width`` samples of the motion around the step
     (centred where the motion allows), exact for rates of degree ``width - 1``; ``STEP_CHUNK``
     rows at a time (their temporaries are ``width``^2 per row)."""
-    k, N = len(s), len(t)
-    if k <= STEP_CHUNK:
+    if len(s) <= STEP_CHUNK:
         return _integral_rows(t, motion, s, tau, width)
     return sp.vstack([_integral_rows(t, motion, s[a:a + STEP_CHUNK], tau[a:a + STEP_CHUNK], width)
-                      for a in range(0, k, STEP_CHUNK)], format="csr")
+                      for a in range(0, len(s), STEP_CHUNK)], format="csr")
 
 
-def _integral_rows(t: np.ndarray, motion: np.ndarray, s: np.ndarray, tau: np.ndarray, width: int) -> sp.csr_matrix:
+def _integral_rows(t: np.ndarray, motion: np.ndarray, s: np.ndarray, tau: np.ndarray,
+                   width: int) -> sp.csr_matrix:
     k, N = len(s), len(t)
     if not k:
         return sp.csr_matrix((0, N))
@@ -280,8 +282,8 @@ class Attitude:
         if not len(pts.h):
             return np.zeros((0, 3, 3))
         out = np.empty((len(pts.h), 3, 3))
-        for a in range(0, len(pts.h), STEP_CHUNK):
-            c = slice(a, a + STEP_CHUNK)
+        for lo in range(0, len(pts.h), STEP_CHUNK):
+            c = slice(lo, lo + STEP_CHUNK)
             h = pts.h[c]
             R0 = self.R_before[np.maximum(h, 0)] if len(self.a) else np.tile(np.eye(3), (len(h), 1, 1))
             R0 = np.where((h >= 0)[:, None, None], R0, np.eye(3))
@@ -301,12 +303,12 @@ class Attitude:
         P = D.shape[2]
         cum = np.empty((len(self.a), 3, P)) if before else None
         last = np.empty((len(quad.last), 3, P))
-        for a, b in quad.ranges:
-            s = slice(a, b)
+        for lo, hi in quad.ranges:
+            s = slice(lo, hi)
             per = (self.R_before[s] @ left_jacobian(self.a[s])) @ weighted(quad.A[s], D)
             run = segmented_cumsum(per, quad.seg[s])
-            ends = slice(*np.searchsorted(quad.last, [a, b]))
-            last[ends] = run[quad.last[ends] - a]
+            ends = slice(*np.searchsorted(quad.last, [lo, hi]))
+            last[ends] = run[quad.last[ends] - lo]
             if before:
                 np.subtract(run, per, out=cum[s])
         if before:

@@ -144,7 +144,7 @@ def test_by_motion_slices_are_the_masks_of_sorted_labels():
 
 
 def test_attitude_formed_by_ranges_of_steps_equals_it_formed_at_once(monkeypatch):
-    import imupipe.diagnosis.attitude as attitude
+    from imupipe.diagnosis import attitude
 
     rng = np.random.default_rng(3)
     ms = MotionSamples.from_turns(*_motions(rng, m=6))
@@ -158,7 +158,7 @@ def test_attitude_formed_by_ranges_of_steps_equals_it_formed_at_once(monkeypatch
         got.append((quad.A.toarray(), pts.W.toarray(), att.R_before, att.total, att.rotation_at(pts),
                     att.end_sensitivity(D, before=True), att.sensitivity(D, pts)))
         starts = np.flatnonzero(np.r_[True, quad.seg[1:] != quad.seg[:-1]])
-        assert [a for a, _ in quad.ranges] == sorted(set(a for a, _ in quad.ranges) & set(starts))
+        assert [a for a, _ in quad.ranges] == sorted({a for a, _ in quad.ranges} & set(starts))
         assert quad.ranges[-1][1] == len(quad.step)
     assert len(quad.ranges) > 2
     for whole, ranged in zip(*got, strict=True):
