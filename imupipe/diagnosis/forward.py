@@ -78,10 +78,15 @@ def _whiteners(cov: np.ndarray) -> np.ndarray:
 
 
 def _normalise(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit vectors (n, 3) and their derivative (n, 3, 3) w.r.t. ``v``: ``(I - u u^T) / |v|``."""
+    """Unit vectors (n, 3) and their derivative (n, 3, 3) w.r.t. ``v``: ``(I - u u^T) / |v|``
+    (by ``SAMPLE_CHUNK`` rows: no whole-length temporaries beside the result)."""
     nv = np.linalg.norm(v, axis=1)
     u = v / nv[:, None]
-    return u, (np.eye(3) - u[:, :, None] * u[:, None, :]) / nv[:, None, None]
+    du = np.empty((len(v), 3, 3))
+    for a in range(0, len(v), SAMPLE_CHUNK):
+        c = slice(a, a + SAMPLE_CHUNK)
+        np.divide(np.eye(3) - u[c, :, None] * u[c, None, :], nv[c, None, None], out=du[c])
+    return u, du
 
 
 # --------------------------------------------------------------------------- inputs
