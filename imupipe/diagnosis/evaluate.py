@@ -226,6 +226,7 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
         x_l = _remap(model.stages, new.stages, x_l)
         model = new
     lin = fit(model, max_iter=max_iter, x_l=x_l, fixed_globals=not refit, tol=FIT_TOL)
+    model.forget_jacobian_places()  # the model's last Jacobian: the map reads lin's
     for j in np.flatnonzero(bad):
         what = [e.kind for e in events if e.kind in EXCLUDING and e.window[0] <= t1[j] and e.window[1] >= t0[j]]
         events.append(Event("excluded_motion", "gyro", (float(t0[j]), float(t1[j])),

@@ -747,6 +747,11 @@ class JointModel:
             J_l = sp.csr_matrix((data, *pattern[1:]), shape=(len(r), Pl))
         return (r, J_g, J_l, sig) if signals else (r, J_g, J_l)
 
+    def forget_jacobian_places(self) -> None:
+        """Drop where J_l's values go (one integer per entry), kept to form Jacobians again: after
+        the model's last fit they would only raise the later peak (a next Jacobian sorts again)."""
+        self.__dict__.pop("_jl_pattern", None)
+
     def _local_jacobian(self, trip: list, N: int, Pl: int) -> sp.csr_matrix:
         """J_l (N, Pl) CSR from its entries ``trip`` (rows, columns, values). Its sparsity does not
         change between evaluations: this first one sorts the entries into CSR order and keeps
@@ -828,17 +833,14 @@ class JointModel:
 
     def _sample_layout(self) -> dict[str, np.ndarray]:
         """What the motion samples' rows need that does not change between evaluations (kept):
-        each sample's knot interval ``kidx`` and weight ``mu``, and the local columns of its
-        row's entries (k, 16): the knot (or rest direction) before and after it (2 each), the
-        gyro walk at the motion's ends (6), the accelerometer walk at them (6); -1 for none."""
+        each sample's knot interval ``kidx`` and weight ``mu``, those on their motion's last
+        interval (``where_last``), and which of their rows' 16 entries exist (``keep``)."""
         lay = self.__dict__.get("_layout")
         if lay is not None:
             return lay
-        cols_l = self._gyro_cols(np.arange(self.m))[1]
         acc = self.accel
         k = len(acc.t)
         j = acc.motion
-        p, q = self.p[j], self.qr[j]
         kidx = np.zeros(k, int)
         mu = np.zeros(k)
         for jj, sel in enumerate(by_motion(j, self.m)):
@@ -848,22 +850,32 @@ class JointModel:
             ki = np.clip(np.searchsorted(kt, acc.t[sel], "right") - 1, 0, self.K[jj] - 1)
             kidx[sel] = ki
             mu[sel] = np.clip((acc.t[sel] - kt[ki]) / (kt[ki + 1] - kt[ki]), 0, 1)
-        Kj = self.K[j]
+        last = kidx + 1 == self.K[j]  # the knot after is the end-point, a function of the next rest's direction
+        lay = {"kidx": kidx, "mu": mu, "where_last": np.flatnonzero(last)}
+        lay["keep"] = np.broadcast_to((self._sample_columns(lay) >= 0)[:, None, :], (k, 3, 16))
+        self.__dict__["_layout"] = lay
+        return lay
+
+    def _sample_columns(self, lay: dict[str, np.ndarray]) -> np.ndarray:
+        """The local columns (k, 16) of the motion samples' rows' entries: the knot (or rest
+        direction) before and after each sample (2 each), the gyro walk at its motion's ends (6),
+        the accelerometer walk at them (6); -1 for none. Not kept: J_l's sparsity needs them once."""
+        j = self.accel.motion
+        p, q = self.p[j], self.qr[j]
+        kidx = lay["kidx"]
+        last = np.zeros(len(j), bool)
+        last[lay["where_last"]] = True
         ks = self.stages.knot_start[p]
         delta = self.stages.delta
-        cols = np.full((k, 16), -1, np.int64)
+        cols = np.full((len(j), 16), -1, np.int64)
         cols[:, 0:2] = np.where((kidx == 0)[:, None], delta[p], (ks + 2 * (kidx - 1))[:, None] + np.arange(2))
-        last = kidx + 1 == Kj  # the knot after is the end-point, a function of the next rest's direction
         cols[:, 2:4] = np.where(last[:, None], delta[q], (ks + 2 * kidx)[:, None] + np.arange(2))
-        cols[:, 4:10] = cols_l[j]
+        cols[:, 4:10] = self._gyro_cols(np.arange(self.m))[1][j]
         if "wa" in self.walks:
             a, b = self.stages.walk_cols["wa"]
             cols[:, 10:13] = b[p][:, None] + np.arange(3)
             cols[:, 13:16] = np.where(a[q][:, None] >= 0, a[q][:, None] + np.arange(3), -1)
-        keep = np.broadcast_to((cols >= 0)[:, None, :], (k, 3, 16))
-        lay = {"kidx": kidx, "mu": mu, "where_last": np.flatnonzero(last), "keep": keep, "cols": cols}
-        self.__dict__["_layout"] = lay
-        return lay
+        return cols
 
     def _sample_geometry(self, P: dict, x_l: np.ndarray, zK: np.ndarray, att: Attitude) -> dict[str, np.ndarray]:
         """Where each motion sample's gravity comes from: its rotation ``R`` (k, 3, 3) from the
@@ -939,6 +951,7 @@ class JointModel:
         if Jg is not None:  # M_g and b_g are adjacent columns, k_g apart (cols_g: their 15, -1 where absent)
             assert np.array_equal(cols_g[:12], np.arange(gl["M_g"].start, gl["b_g"].stop))
         WL = np.einsum("ij,ljm->ilm", self.W_sample, _LOWER)  # (3, 6, 3)
+        columns = {}  # the entries' local columns: formed only if J_l's sparsity is (once per model)
         for a in range(0, k, SAMPLE_CHUNK):  # the derivatives of SAMPLE_CHUNK samples at a time
             c = slice(a, a + SAMPLE_CHUNK)
             n_c = len(acc.t[c])
@@ -967,6 +980,8 @@ class JointModel:
             def where(a=a, n_c=n_c, keep=keep) -> tuple[np.ndarray, np.ndarray]:
                 rows = np.broadcast_to((s0 + 3 * np.arange(a, a + n_c)[:, None] + np.arange(3))[:, :, None],
                                        (n_c, 3, 16))
-                return rows[keep], np.broadcast_to(lay["cols"][a:a + n_c, None, :], (n_c, 3, 16))[keep]
+                if "cols" not in columns:
+                    columns["cols"] = self._sample_columns(lay)
+                return rows[keep], np.broadcast_to(columns["cols"][a:a + n_c, None, :], (n_c, 3, 16))[keep]
 
             local.flat(where, vals[keep])
