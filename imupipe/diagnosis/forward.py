@@ -510,12 +510,13 @@ class JointModel:
         """The rows a term on the motions' gyro samples moves: the turns', then the motion samples'."""
         return np.flatnonzero(self.rows.of("turn") | self.rows.of("accel_motion"))
 
-    def gyro_columns(self, x_g: np.ndarray, x_l: np.ndarray, dy: np.ndarray) -> np.ndarray:
+    def gyro_columns(self, x_g: np.ndarray, x_l: np.ndarray, dy: np.ndarray | RateDerivatives) -> np.ndarray:
         """(len(motion_rows), k) d r / d theta on the ``motion_rows`` of a term ``dy`` (N_g, 3, k)
         added to the motions' raw gyro samples (zero on every other row), analytically: the
         calibration turns it into rate derivatives ``M_g dy``, which move the attitude at the
         motions' samples and end-points; ``GYRO_CHUNK`` columns at a time (memory: the attitude's
-        sensitivities are as wide as the columns)."""
+        sensitivities are as wide as the columns). ``dy`` may come factored (``RateDerivatives``:
+        a few signals times a basis), as a library's columns do: no (N_g, 3, k) array then."""
         P = self.unpack(x_g)
         n_turn = int(2 * self.K.sum())
         out = np.zeros((n_turn + 3 * len(self.accel.t), dy.shape[2]))
@@ -528,7 +529,10 @@ class JointModel:
         geo = None
         for a in range(0, dy.shape[2], GYRO_CHUNK):
             cols = slice(a, min(a + GYRO_CHUNK, dy.shape[2]))
-            rate = np.einsum("ab,nbk->nak", P["M_g"], dy[:, :, cols])
+            if isinstance(dy, RateDerivatives):
+                rate = RateDerivatives(dy.coef, np.einsum("ab,ubk->uak", P["M_g"], dy.basis[:, :, cols]))
+            else:
+                rate = np.einsum("ab,nbk->nak", P["M_g"], dy[:, :, cols])
             zK, dz_gyro, _, _, D, *_ = self._endpoints(P, x_l, rate_columns=rate, att=att)
             out[ends, cols] = W_end @ dz_gyro
             if not len(samples):

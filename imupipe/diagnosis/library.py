@@ -34,6 +34,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.stats import chi2 as chi2_dist
 
+from .attitude import RateDerivatives
 from .linearised import Linearised
 from .residual_map import windows
 from .select import BOOT_DRAWS, Q_FDR, VISIBLE_MIN, Signals, block_wild_p, rigid_walks, time_blocks
@@ -201,10 +202,13 @@ def _carried(s: Signals, signals: list, exact: list[bool]) -> _Carried:
             X[:, u] = (np.bincount(ms.motion, x, ms.count) / count)[motion]
     columns = _per_axis(signals)
     by_column = [c for c, (_, _, _, u) in enumerate(columns) if exact[u]]
-    dy = np.zeros((len(ms.t), 3, len(by_column)))
+    used = sorted({columns[c][3] for c in by_column})
+    basis = np.zeros((len(used), 3, len(by_column)))  # each column: one signal on one axis
     for j, c in enumerate(by_column):
         i, _, _, u = columns[c]
-        dy[:, i, j] = signals[u][1]
+        basis[used.index(u), i, j] = 1.0
+    coef = np.column_stack([signals[u][1] for u in used]) if used else np.zeros((len(ms.t), 0))
+    dy = RateDerivatives(coef, basis)
     E = np.zeros((len(at), len(columns)))
     E[:, by_column] = s.gyro_motion_column(dy)
     return _Carried(at, lin.J_g[at, lin.globals.slices["b_g"]], X, E)

@@ -10,6 +10,7 @@ import pytest
 from forward_synth import G, noise_free_imu, rests_from_truth, small_gimbal, small_sphere_rig
 
 from imupipe.diagnosis import forward
+from imupipe.diagnosis.attitude import RateDerivatives
 from imupipe.diagnosis.forward import JointModel, MotionAccel, Noise, Start
 
 
@@ -148,3 +149,20 @@ def test_a_term_on_the_motions_gyro_samples_has_the_columns_its_differenced_resi
         assert not np.delete(fd, model.motion_rows).any()  # no other row moves
         fd = fd[model.motion_rows]
         assert np.linalg.norm(J[:, c] - fd) < 1e-6 * np.linalg.norm(fd)
+
+
+def test_a_factored_gyro_term_has_the_columns_of_its_dense_form(fitted):
+    """A library's gyro columns come factored (a few signals, each on one axis): the same
+    columns as the dense (N_g, 3, k) term, without forming it."""
+    lin = fitted[-1]
+    model = lin.model
+    ms = model.motions
+    signals = np.column_stack([np.abs(ms.y[:, 0]), ms.y[:, 1] ** 2])  # two signals ...
+    basis = np.zeros((2, 3, 14))
+    for j in range(14):  # ... each column one of them on one axis
+        basis[j % 2, j % 3, j] = 1.0
+    dense = np.einsum("nu,ubk->nbk", signals, basis)
+    want = model.gyro_columns(lin.x_g, lin.x_l, dense)
+    got = model.gyro_columns(lin.x_g, lin.x_l, RateDerivatives(signals, basis))
+    assert np.abs(want).max() > 0
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
