@@ -211,7 +211,7 @@ class Points:
 class Quadrature:
     """What integrating the motions needs from the time stamps alone (computed once): the steps
     (``step`` (S,) the first sample of each), their weights ``A`` (S, N) and ``ranges`` of whole
-    motions' steps, each about ``STEP_CHUNK`` long, to form their sensitivities by."""
+    motions' steps, each about ``STEP_CHUNK`` long, to form the attitude by."""
 
     def __init__(self, samples: MotionSamples):
         self.samples = samples

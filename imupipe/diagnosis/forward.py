@@ -641,7 +641,6 @@ class JointModel:
             J_g = old_g if old_g is not None and old_g.shape == shape else np.zeros(shape)
             if J_g is old_g:
                 J_g.fill(0.0)
-        del out, old_g, old_l
 
         def block(r: np.ndarray, Jg: np.ndarray | None) -> int:
             """Append rows ``r`` and their ``Jg`` (None: zero, or already written through

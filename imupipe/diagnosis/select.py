@@ -254,9 +254,9 @@ class Signals:
 
     def gyro_motion_column(self, dy) -> np.ndarray:
         """(len(motion_rows), k) the column of a term ``dy`` (N_g, 3, k), or factored
-        (``attitude.RateDerivatives``), added to the motions' gyro
-        samples on the rows it moves (``JointModel.motion_rows``), through the attitude they integrate
-        to (``JointModel.gyro_columns``; the term in the prediction: r falls)."""
+        (``attitude.RateDerivatives``), added to the motions' gyro samples on the rows it moves
+        (``JointModel.motion_rows``), through the attitude they integrate to
+        (``JointModel.gyro_columns``; the term in the prediction: r falls)."""
         out = self.model.gyro_columns(self.lin.x_g, self.lin.x_l, dy)
         return np.negative(out, out=out)  # in place: at the map's peak, a copy is 30 MiB an hour
 
