@@ -248,7 +248,7 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
         Gr = sp.csc_matrix((r_use, (blocks, np.arange(N))), shape=(blocks.max() + 1, N))  # sliced by rows of the fit
         S_g, S_l = Gr @ lin.J_g, Gr @ lin.J_l
     libs = libraries(s)  # first: forming its gyro columns takes more memory than the rigid system, kept beside them
-    rigid = rigid_walks(lin)[0]
+    rigid = rigid_walks(lin)[0].solver_only()  # its J_l's scaled values would sit through the scoring
     out = []
     draws = bootstrap_draws(len(libs) * (1 + len(AXES)), level)
     for lib in libs:

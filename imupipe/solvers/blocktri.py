@@ -267,6 +267,13 @@ class Bordered:
         x_g, x_l = self.solve(-(self.J_g.T @ r), -np.asarray(self.J_l.T @ r))
         return x_g, x_l
 
+    def solver_only(self) -> Bordered:
+        """Itself without its Jacobians (``solve`` and ``global_covariance`` need only the
+        factors; ``step`` and ``leverage`` then cannot run): a system built on a scaled copy of
+        J_l keeps that copy otherwise."""
+        self.J_g = self.J_l = None
+        return self
+
     def global_covariance(self) -> np.ndarray:
         """(p, p) ``(A^-1)_gg = S^-1``: the globals' covariance with every local marginalised."""
         return cho_solve((self._S_chol, True), np.eye(len(self.S))) if len(self.S) else self.S

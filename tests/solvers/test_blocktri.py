@@ -61,6 +61,14 @@ def test_bordered_covariance_and_leverage_match_dense():
     r = rng.normal(size=len(J))
     d_g, d_l = sys.step(r)
     assert np.allclose(np.concatenate([d_g, d_l]), -np.linalg.solve(A, J.T @ r), rtol=1e-9)
+    # without its Jacobians it still solves (and keeps no reference to them)
+    g_g, g_l = J_g.T @ r, J_l.T @ r
+    want = sys.solve(g_g, g_l)
+    lean = Bordered(J_g, J_l, offsets).solver_only()
+    assert lean.J_g is None and lean.J_l is None
+    for got, exp in zip(lean.solve(g_g, g_l), want, strict=True):
+        assert np.array_equal(got, exp)
+    assert np.array_equal(lean.global_covariance(), sys.global_covariance())
 
 
 def test_levenberg_marquardt_solves_a_nonlinear_chain():
