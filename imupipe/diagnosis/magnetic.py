@@ -133,14 +133,16 @@ def motion_rows(ev: Evaluation, rests: Rests, t_s: np.ndarray, y: np.ndarray, ma
     n = h / np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-300)
     across = np.eye(3) - n[:, :, None] * n[:, None, :]
     C += (np.einsum("ni,ni->n", h, h) * tau * dt * np.trace(Sg) / 3)[:, None, None] * across
+    del across  # (n, 3, 3) arrays freed as soon as used: this step is the map's high-water mark
     L_inv = np.linalg.inv(np.linalg.cholesky(C))
+    del C
     # per motion: b = (sum R C^-1 R')^-1 sum R C^-1 h, the field in the body at its start
-    Ci = np.swapaxes(L_inv, 1, 2) @ L_inv
-    RCi = R @ Ci
+    RCi = R @ (np.swapaxes(L_inv, 1, 2) @ L_inv)
     A = np.zeros((ms.count, 3, 3))
     c = np.zeros((ms.count, 3))
     np.add.at(A, j, RCi @ np.swapaxes(R, 1, 2))
     np.add.at(c, j, np.einsum("nij,nj->ni", RCi, h))
+    del RCi
     used = np.unique(j)
     A_inv = np.zeros_like(A)
     A_inv[used] = np.linalg.inv(A[used])
