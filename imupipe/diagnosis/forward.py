@@ -837,7 +837,7 @@ class JointModel:
     def _sample_layout(self) -> dict[str, np.ndarray]:
         """What the motion samples' rows need that does not change between evaluations (kept):
         each sample's knot interval ``kidx`` and weight ``mu``, those on their motion's last
-        interval (``where_last``), and which of their rows' 16 entries exist (``keep``)."""
+        interval (``last``), and which of their rows' 16 entries exist (``keep``)."""
         lay = self.__dict__.get("_layout")
         if lay is not None:
             return lay
@@ -854,7 +854,7 @@ class JointModel:
             kidx[sel] = ki
             mu[sel] = np.clip((acc.t[sel] - kt[ki]) / (kt[ki + 1] - kt[ki]), 0, 1)
         last = kidx + 1 == self.K[j]  # the knot after is the end-point, a function of the next rest's direction
-        lay = {"kidx": kidx, "mu": mu, "where_last": np.flatnonzero(last)}
+        lay = {"kidx": kidx, "mu": mu, "last": last}
         lay["keep"] = np.broadcast_to((self._sample_columns(lay) >= 0)[:, None, :], (k, 3, 16))
         self.__dict__["_layout"] = lay
         return lay
@@ -865,9 +865,7 @@ class JointModel:
         the accelerometer walk at them (6); -1 for none. Not kept: J_l's sparsity needs them once."""
         j = self.accel.motion
         p, q = self.p[j], self.qr[j]
-        kidx = lay["kidx"]
-        last = np.zeros(len(j), bool)
-        last[lay["where_last"]] = True
+        kidx, last = lay["kidx"], lay["last"]
         ks = self.stages.knot_start[p]
         delta = self.stages.delta
         cols = np.full((len(j), 16), -1, np.int64)
@@ -907,10 +905,8 @@ class JointModel:
         z = (1 - mu)[:, None] * knot_value(kidx) + mu[:, None] * knot_value(kidx + 1)
         Bp = self.B[p]
         nvec, dn = _normalise(self.u0[p] + (Bp @ z[:, :, None])[:, :, 0])
-        last = np.zeros(k, bool)
-        last[lay["where_last"]] = True
         return {"R": att.rotation_at(self.accel_points), "nvec": nvec, "dn": dn, "Bp": Bp, "mu": mu,
-                "last": last, "WS": -self.g * self.W_sample @ P["S_a"]}
+                "last": lay["last"], "WS": -self.g * self.W_sample @ P["S_a"]}
 
     def _sample_rate_rows(self, geo: dict, att: Attitude, D, dz_gyro: np.ndarray,
                           a: int, n_c: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

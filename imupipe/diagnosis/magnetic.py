@@ -133,7 +133,7 @@ def motion_rows(ev: Evaluation, rests: Rests, t_s: np.ndarray, y: np.ndarray, ma
     n = h / np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-300)
     across = np.eye(3) - n[:, :, None] * n[:, None, :]
     C += (np.einsum("ni,ni->n", h, h) * tau * dt * np.trace(Sg) / 3)[:, None, None] * across
-    del across  # (n, 3, 3) arrays freed as soon as used: this step is the map's high-water mark
+    del across  # (n, 3, 3) arrays freed as soon as used: this step sits at the map's memory peak
     L_inv = np.linalg.inv(np.linalg.cholesky(C))
     del C
     # per motion: b = (sum R C^-1 R')^-1 sum R C^-1 h, the field in the body at its start
