@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ..rotations import quat_exp, quat_mul, quat_to_matrix, skew
+from ..rotations import quat_exp, quat_mul_into, quat_to_matrix, skew
 
 _SMALL = 1e-4
 # steps (or instants) whose attitude quantities are formed at once: temporaries of a few MiB, which the
@@ -68,13 +68,17 @@ def segmented_scan(q: np.ndarray, seg: np.ndarray) -> np.ndarray:
     """Inclusive ordered products of quaternions ``q`` (n, 4) within runs of equal ``seg`` (n,)
     (Hillis-Steele: log2 of the longest run's length vectorised passes, not of n; each pass
     multiplies every pair of slices and keeps the products within a run: 3x faster than
-    gathering and scattering those pairs)."""
-    q = q.copy()
-    longest = int(np.diff(_run_bounds(seg)).max()) if len(q) else 0
+    gathering and scattering those pairs), on the quaternions' components in rows."""
+    n = len(q)
+    longest = int(np.diff(_run_bounds(seg)).max()) if n else 0
+    Q, prod, scratch = np.ascontiguousarray(q.T), np.empty((4, n)), np.empty(n)
     off = 1
     while off < longest:
-        np.copyto(q[off:], quat_mul(q[:-off], q[off:]), where=(seg[off:] == seg[:-off])[:, None])
+        k = n - off
+        quat_mul_into(Q[:, :-off], Q[:, off:], prod[:, :k], scratch[:k])
+        np.copyto(Q[:, off:], prod[:, :k], where=seg[off:] == seg[:-off])
         off *= 2
+    q = np.ascontiguousarray(Q.T)
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
