@@ -26,8 +26,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pyarrow as pa
 
-from .. import schemas
-from scipy.stats import chi2 as chi2_dist
+from .. import schemas, tails
 
 from ..allan import batch_variance_ratio
 from ..models import T_REF_C, TriadCalibration
@@ -70,7 +69,7 @@ def effective_counts(rests: Rests, streams: Mapping[str, tuple[np.ndarray, np.nd
     with the white-noise one: the median ratio over rests (per triad, at least 1) applies to
     every rest, and a rest whose own ratio exceeds the 99 % point of the white ratio
     (chi-square with ``ESS_BATCHES - 1`` dof) keeps its own."""
-    crit = chi2_dist.ppf(0.99, ESS_BATCHES - 1) / (ESS_BATCHES - 1)
+    crit = tails.chi2_ppf(0.99, ESS_BATCHES - 1) / (ESS_BATCHES - 1)
     counts = {}
     for sensor in ("accel", "gyro", "mag"):
         if not rests.has(sensor) or sensor not in streams:

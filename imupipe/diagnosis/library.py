@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.stats import chi2 as chi2_dist
 
+from .. import tails
 from .attitude import RateDerivatives
 from .linearised import Linearised
 from .residual_map import windows
@@ -73,7 +73,7 @@ class StructureCell:
 
     @property
     def p_value(self) -> float:
-        return max(float(chi2_dist.sf(self.chi2, self.dof)), self.p_bootstrap)
+        return max(float(tails.chi2_sf(self.chi2, self.dof)), self.p_bootstrap)
 
 
 @dataclass
@@ -375,7 +375,7 @@ def _stable_terms(B: np.ndarray, h: np.ndarray, g_b: np.ndarray) -> list[tuple[i
     block's score; a half has about half the information), and the columns chosen in at least
     ``STABLE_MIN`` of them, most often chosen first: ``(column, coefficient, t, share)`` with
     the coefficient (normalised column) and t of their joint fit to all the data."""
-    t2_min = float(chi2_dist.isf(Q_FDR / len(h), 1))
+    t2_min = float(tails.chi2_isf(Q_FDR / len(h), 1))
     rng = np.random.default_rng(0)
     counts = np.zeros(len(h))
     for _ in range(STABLE_HALVES):

@@ -25,9 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import pyarrow.compute as pc
-from scipy.stats import chi2 as chi2_dist
-from scipy.stats import norm
 
+from .. import tails
 from .evaluate import Evaluation
 from .events import Event
 from .forward import BLOCKS
@@ -74,9 +73,9 @@ class Cell:
         ``BATCH_S`` batches shows them correlated (a slowly mis-modelled nuisance), the
         normal tail with that spread (an effective sample size), whichever is larger."""
         excess = 1 + EXCESS_MARGIN
-        p = float(chi2_dist.sf(self.chi2 / excess, self.dof))
+        p = float(tails.chi2_sf(self.chi2 / excess, self.dof))
         if self.batch_sd > np.sqrt(2 / self.dof):
-            p = max(p, float(norm.sf((self.chi2_per_dof - excess) / self.batch_sd)))
+            p = max(p, float(tails.norm_sf((self.chi2_per_dof - excess) / self.batch_sd)))
         return p
 
 
@@ -317,7 +316,7 @@ def lone_rests(z: np.ndarray, level: float = LONE_LEVEL) -> tuple[np.ndarray, np
         return np.zeros(0, int), np.zeros((0, 3))
     off = (z[1:-1] - 0.5 * (z[:-2] + z[2:])) / np.sqrt(1.5)  # unit variance per axis under the model
     apart = ((z[:-2] - z[2:]) ** 2).sum(axis=1) / 2  # chi-square 3, as (off**2).sum(axis=1)
-    crit = chi2_dist.isf(level / len(z), 3) * max(1.0, float(np.median(apart)) / chi2_dist.median(3))
+    crit = tails.chi2_isf(level / len(z), 3) * max(1.0, float(np.median(apart)) / tails.chi2_ppf(0.5, 3))
     lone = np.flatnonzero(((off**2).sum(axis=1) > crit) & (apart <= crit))
     return lone + 1, off[lone]
 

@@ -59,9 +59,9 @@ from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
-from scipy import stats
-from scipy.signal import savgol_filter
+from numpy.lib.stride_tricks import sliding_window_view
 
+from .. import tails
 from ..effects.earth_rotation import EARTH_RATE
 from ..errors import SolverError
 from ..models import T_REF_C
@@ -277,7 +277,23 @@ def _derivative(y: np.ndarray, t: np.ndarray, span_s: float = 0.1) -> np.ndarray
     win = int(np.clip(round(span_s / dt) // 2 * 2 + 1, 5, len(t) // 2 * 2 - 1)) if len(t) >= 5 else 0
     if win < 5:
         return np.gradient(y, t, axis=0)
-    return savgol_filter(y, win, 3, deriv=1, delta=dt, axis=0)
+    return _cubic_slope(np.asarray(y, float), win, dt)
+
+
+def _cubic_slope(y: np.ndarray, win: int, dt: float) -> np.ndarray:
+    """The slope of the least-squares cubic through ``win`` (odd) samples of ``y`` (n, ...) around
+    each, spaced ``dt``; within ``win // 2`` of an end, of the first or last ``win`` samples' cubic
+    (``scipy.signal.savgol_filter(y, win, 3, deriv=1, delta=dt, axis=0)``, without importing
+    scipy.signal)."""
+    half = win // 2
+    x = np.arange(win) - half
+    fit = np.linalg.pinv(np.vander(x, 4, increasing=True))  # (4, win): the cubic's coefficients
+    slope = np.column_stack([np.zeros(win), np.ones(win), 2 * x, 3 * x**2]) @ fit / dt  # (win, win)
+    out = np.empty_like(y)
+    out[half:len(y) - half] = sliding_window_view(y, win, axis=0) @ slope[half]
+    out[:half] = slope[:half] @ y[:win]
+    out[len(y) - half:] = slope[half + 1:] @ y[len(y) - win:]
+    return out
 
 
 def candidates(lin: Linearised, frame: np.ndarray, registry) -> list[Candidate]:
@@ -544,7 +560,7 @@ def select(lin: Linearised, tested: list[Tested], q: float = Q_FDR, latitude_deg
         T, _ = _score(r, Cp, scale)
         k = Cp.shape[1]
         bonferroni = max(1, t.candidate.extra_dof)
-        p_asym = min(1.0, float(stats.chi2.sf(T, k)) * bonferroni)
+        p_asym = min(1.0, float(tails.chi2_sf(T, k)) * bonferroni)
         blocks = groups[bool(misfit.intersection(triads(t.candidate.sensor)))]
         p = p_asym if p_asym > q else max(p_asym, min(1.0, wild_p(Cp, r, blocks) * bonferroni))
         return T, p, p_asym
@@ -886,7 +902,7 @@ def _gain_z(gains: np.ndarray, expected: np.ndarray) -> float:
     t = float(gains.sum() / (2 * np.sqrt(max(inflation, 1.0) * q)))
     if inflation <= 1.0 or len(gains) < 2:
         return t
-    return float(stats.norm.isf(stats.t.sf(t, len(gains) - 1)))
+    return float(tails.norm_isf(tails.t_sf(t, len(gains) - 1)))
 
 
 def _sensor_rms(lin: Linearised, finding: Finding, before: np.ndarray, after: np.ndarray,

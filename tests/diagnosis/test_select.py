@@ -15,9 +15,23 @@ from forward_synth import G, joint_model, noise_free_imu, rests_from_truth, smal
 
 from imupipe.diagnosis.forward import MotionAccel
 from imupipe.diagnosis.linearised import fit
-from imupipe.diagnosis.select import (BLOCK_S, LONG_BLOCKS, STRETCHES, Candidate, _gain_z, _leave_one_out,
-                                      _row_groups, _stretch_of_rows, candidates, examine, rigid_walks, select,
-                                      time_blocks, wild_p)
+from imupipe.diagnosis.select import (
+    BLOCK_S,
+    LONG_BLOCKS,
+    STRETCHES,
+    Candidate,
+    _cubic_slope,
+    _gain_z,
+    _leave_one_out,
+    _row_groups,
+    _stretch_of_rows,
+    candidates,
+    examine,
+    rigid_walks,
+    select,
+    time_blocks,
+    wild_p,
+)
 from imupipe.effects.earth_rotation import EARTH_RATE
 from imupipe.models import T_REF_C
 from imupipe.sim.api import known_effects, simulate_arrays
@@ -206,3 +220,14 @@ def test_long_blocks_keep_flicker_noise_from_passing_for_a_term_and_still_find_o
         false_long += wild_p(Cp, r, spans) < 0.01
         found += wild_p(Cp, rng.normal(size=n) + 5 * Cp[:, 0] / np.linalg.norm(Cp), spans) < 0.01
     assert false_short >= 10 and false_long <= 3 and found >= 80, (false_short, false_long, found)
+
+
+def test_cubic_slope_is_savitzky_golay_without_scipy_signal():
+    from scipy.signal import savgol_filter
+
+    rng = np.random.default_rng(5)
+    y = np.cumsum(rng.normal(size=(200, 3)), axis=0)
+    for win in (5, 11, 199):
+        want = savgol_filter(y, win, 3, deriv=1, delta=0.01, axis=0)
+        assert np.allclose(_cubic_slope(y, win, 0.01), want, rtol=1e-11, atol=1e-11 * np.abs(want).max())
+        assert np.allclose(_cubic_slope(y[:, 0], win, 0.01), want[:, 0], rtol=1e-11, atol=1e-11 * np.abs(want).max())
