@@ -20,8 +20,9 @@ keeps only its end-points. Each becomes an event of the residual map.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 import pyarrow as pa
@@ -50,15 +51,22 @@ FIT_TOL = 1e-7  # relative cost decrease that ends the fit (a final Gauss-Newton
 @dataclass
 class Evaluation:
     """``lin`` the fitted per-sample model (lower-triangular gauge), ``frame`` Q (gauge -> the
-    calibration's frame), ``samples`` the per-sample residual table, ``events``, ``turn_index``
-    (m',) which of the session's turns the model kept, ``motion_sampled`` (m',) bool."""
+    calibration's frame), ``table`` the per-sample residual table or what forms it (``samples``
+    forms it on first use: the map's structure cells, before, have the memory without it),
+    ``events``, ``turn_index`` (m',) which of the session's turns the model kept."""
 
     lin: Linearised
     frame: np.ndarray
-    samples: pa.Table
+    table: pa.Table | Callable[[], pa.Table] | None
     events: list[Event] = field(default_factory=list)
     turn_index: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
     white_chi2: dict[str, float] = field(default_factory=dict)  # rest blocks under white noise
+
+    @property
+    def samples(self) -> pa.Table | None:
+        if callable(self.table):
+            self.table = self.table()
+        return self.table
 
 
 def effective_counts(rests: Rests, streams: Mapping[str, tuple[np.ndarray, np.ndarray]]) -> Rests:
@@ -231,7 +239,7 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
         events.append(Event("excluded_motion", "gyro", (float(t0[j]), float(t1[j])),
                             f"motion {j} holds a {', '.join(sorted(set(what)))}: left out of the model"))
     excluded = [e.window for e in events if e.kind in ("translation", "excluded_motion")]
-    samples = sample_table(model, lin, streams, rests, Q, excluded)
+    samples = partial(sample_table, model, lin, streams, rests, Q, excluded)
     return Evaluation(lin, Q, samples, events, keep, _white_rest_chi2(model, lin, white_rests))
 
 

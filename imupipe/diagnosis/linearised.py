@@ -42,10 +42,16 @@ class Linearised:
     def system(self) -> Bordered:
         """The normal equations at the solution (built on first use)."""
         if self.J_g is None:
-            raise ValueError("a fit of the nuisances alone without leverages keeps no J_g (fit's docstring)")
+            raise ValueError("no J_g kept: a fit of the nuisances alone without leverages (fit's docstring), "
+                             "or forget_jacobians")
         if self._system is None:
             self._system = Bordered(self.J_g, self.J_l, self.model.stages.offsets)
         return self._system
+
+    def forget_jacobians(self) -> None:
+        """Drop the Jacobians and the normal equations (the largest arrays of a long recording)
+        once nothing needs them: the residuals, leverages and solution stay."""
+        self.J_g = self.J_l = self._system = None
 
     @property
     def rows(self) -> Rows:

@@ -361,12 +361,16 @@ def change_points(ev: Evaluation, penalty_sd: float = 4.0) -> list[Event]:
 
 
 def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR,
-                 extra: Callable[[], tuple[RowSet, ...]] = tuple) -> dict:
+                 extra: Callable[[], tuple[RowSet, ...]] = tuple, keep_jacobians: bool = True) -> dict:
     """The ``residual_map.json`` document of ``spec/contracts.md`` for an evaluation; ``extra()``:
-    rows of triads outside the per-sample model (the magnetometer's, ``magnetic``)."""
+    rows of triads outside the per-sample model (the magnetometer's, ``magnetic``);
+    ``keep_jacobians=False``: the fit's Jacobians are dropped once the structure cells are
+    scored (nothing after them needs them; a diagnosis does)."""
     from .library import structure_cells  # it builds on select, which builds on this module
 
     structure = structure_cells(ev.lin)  # first: its working memory is free again for the rows' cells
+    if not keep_jacobians:
+        ev.lin.forget_jacobians()
     model_rs = model_rows(ev)
     noise_rs = rest_scatter_rows(ev)
     extra_rs = extra()  # after the structure cells, whose working memory is then free

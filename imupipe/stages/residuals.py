@@ -132,7 +132,7 @@ def map_residuals(inputs: Mapping[str, pa.Table], params: MapParams, solver: Bou
     from ..diagnosis.residual_map import residual_map
 
     ev = evaluation(inputs, params)
-    doc = residual_map(ev, q=params.fdr_q, extra=lambda: magnetometer_rows(inputs, ev))
+    doc = residual_map(ev, q=params.fdr_q, extra=lambda: magnetometer_rows(inputs, ev), keep_jacobians=False)
     meta = {MAP_KEY.decode(): json.dumps(doc)}
     return {"samples": ev.samples, "map": schemas.stamp(_cell_table(doc["cells"]), "residual_map", meta)}
 
