@@ -28,7 +28,9 @@ at rest, whose sum is g^2) name several where one acts.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -116,10 +118,22 @@ class _Carried:
 
 @dataclass
 class _Library:
+    """A library's columns on the rows of the fit; its ``parts`` (``_Readings`` / ``_Carried`` on
+    disjoint rows, as long as the recording) are formed on first use and dropped by ``forget``:
+    the structure cells hold one library's at a time."""
+
     sensor: str
     regime: str
     columns: list[tuple[int, str, str, int]]  # (output axis, name, unit, signal index)
-    parts: list  # _Readings / _Carried on disjoint rows
+    make: Callable[[], list]  # its parts
+    readings: int  # the rows its parts cover
+
+    @cached_property
+    def parts(self) -> list:
+        return self.make()
+
+    def forget(self) -> None:
+        self.__dict__.pop("parts", None)
 
     def chunks(self):
         """(rows, C) pieces of the whitened columns, ``CHUNK`` readings at a time: never all rows."""
@@ -155,35 +169,48 @@ def libraries(s: Signals) -> list[_Library]:
     """The static libraries act on every reading, as the catalogue's terms do (a slow term left out
     of the motions is one the bias walk copies at the rests for free): the accelerometer's on its
     rest means and motion samples, the gyro's on its rest means and through the motions'
-    attitude (``_Carried``)."""
-    model, lin = s.model, s.lin
+    attitude (``_Carried``). Their parts are formed when first read."""
+    model = s.model
     warm = lambda t_on: np.exp(-t_on / WARMUP_TAU_S)  # noqa: E731
-    out = []
+    motion_a = s.has_motion and len(s.rows_m)
+    carried = len(model.motion_rows) if s.has_gyro_motion else 0
     rest_a = _static(s.f_rest, model.dT, warm(s.t_on_rest), gyro=False)
-    parts = [_Readings(s.rows_a, s.W_a, _matrix(rest_a))]
-    if s.has_motion and len(s.rows_m):
-        motion_a = _static(s.f_motion, model.dT_acc, warm(s.t_on_motion), gyro=False)
-        parts.append(_Readings(s.rows_m, model.W_sample, _matrix(motion_a)))
-    out.append(_Library("accel", "static", _per_axis(rest_a), parts))
-
     rest_g = _static(s.f_rest, model.dT, warm(s.t_on_rest), gyro=True)
-    parts = [_Readings(s.rows_g, s.W_g, _matrix(rest_g))]
-    if s.has_gyro_motion:
-        motion_g = _static(s.f_gyro_motion, model.dT_gyro, warm(s.t_on_gyro_motion), gyro=True)
-        parts.append(_carried(s, motion_g, [name.startswith("f_") for name, _, _ in motion_g]))
-    out.append(_Library("gyro", "static", _per_axis(rest_g), parts))
-    if s.has_gyro_motion:  # a response that differs with the rate's sign (scale asymmetry, rectification)
-        rate = [(f"|x_{AXES[j]}|", np.abs(s.x_gyro_motion[:, j]), "rad/s") for j in range(3)]
-        out.append(_Library("gyro", "motion", _per_axis(rate), [_carried(s, rate, [True] * 3)]))
 
-    if s.has_motion and len(s.rows_m):
-        w, a, fd, f = s.omega, s.alpha, s.f_dot, s.f_motion
-        motion = [(f"w_{AXES[j]}*w_{AXES[k]}", w[:, j] * w[:, k], "(rad/s)^2") for j, k in _PAIRS]
-        motion += [(f"alpha_{AXES[j]}", a[:, j], "rad/s^2") for j in range(3)]
-        motion += [(f"fdot_{AXES[j]}", fd[:, j], "m/s^3") for j in range(3)]
-        motion += [(f"f_{AXES[j]}*f_{AXES[k]}", f[:, j] * f[:, k], "(m/s^2)^2") for j, k in _PAIRS]
-        out.append(_Library("accel", "motion", _per_axis(motion), [_Readings(s.rows_m, model.W_sample, _matrix(motion))]))
-    return [lib for lib in out if sum(len(p) for p in lib.parts)]
+    def accel_static() -> list:
+        parts = [_Readings(s.rows_a, s.W_a, _matrix(rest_a))]
+        if motion_a:
+            motion = _static(s.f_motion, model.dT_acc, warm(s.t_on_motion), gyro=False)
+            parts.append(_Readings(s.rows_m, model.W_sample, _matrix(motion)))
+        return parts
+
+    def gyro_static() -> list:
+        parts = [_Readings(s.rows_g, s.W_g, _matrix(rest_g))]
+        if carried:
+            motion = _static(s.f_gyro_motion, model.dT_gyro, warm(s.t_on_gyro_motion), gyro=True)
+            parts.append(_carried(s, motion, [name.startswith("f_") for name, _, _ in motion]))
+        return parts
+
+    out = [_Library("accel", "static", _per_axis(rest_a), accel_static,
+                    len(s.rows_a) + (len(s.rows_m) if motion_a else 0)),
+           _Library("gyro", "static", _per_axis(rest_g), gyro_static, len(s.rows_g) + carried)]
+    if carried:  # a response that differs with the rate's sign (scale asymmetry, rectification)
+        rate = [(f"|x_{AXES[j]}|", np.abs(s.x_gyro_motion[:, j]), "rad/s") for j in range(3)]
+        out.append(_Library("gyro", "motion", _per_axis(rate), lambda: [_carried(s, rate, [True] * 3)], carried))
+    if motion_a:
+        out.append(_Library("accel", "motion", _per_axis(_accel_motion(s)),
+                            lambda: [_Readings(s.rows_m, model.W_sample, _matrix(_accel_motion(s)))], len(s.rows_m)))
+    return [lib for lib in out if lib.readings]
+
+
+def _accel_motion(s: Signals) -> list[tuple[str, np.ndarray, str]]:
+    """The accelerometer's motion library at its motion samples: rate products, angular
+    acceleration, jerk of the specific force and its products."""
+    w, a, fd, f = s.omega, s.alpha, s.f_dot, s.f_motion
+    out = [(f"w_{AXES[j]}*w_{AXES[k]}", w[:, j] * w[:, k], "(rad/s)^2") for j, k in _PAIRS]
+    out += [(f"alpha_{AXES[j]}", a[:, j], "rad/s^2") for j in range(3)]
+    out += [(f"fdot_{AXES[j]}", fd[:, j], "m/s^3") for j in range(3)]
+    return out + [(f"f_{AXES[j]}*f_{AXES[k]}", f[:, j] * f[:, k], "(m/s^2)^2") for j, k in _PAIRS]
 
 
 def _carried(s: Signals, signals: list, exact: list[bool]) -> _Carried:
@@ -247,7 +274,7 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
         _, blocks = np.unique(time_blocks(lin), return_inverse=True)
         Gr = sp.csc_matrix((r_use, (blocks, np.arange(N))), shape=(blocks.max() + 1, N))  # sliced by rows of the fit
         S_g, S_l = Gr @ lin.J_g, Gr @ lin.J_l
-    libs = libraries(s)  # first: forming its gyro columns takes more memory than the rigid system, kept beside them
+    libs = libraries(s)  # each formed in turn below, then forgotten: one library's columns held at a time
     rigid = rigid_walks(lin)[0].solver_only()  # its J_l's scaled values would sit through the scoring
     out = []
     draws = bootstrap_draws(len(libs) * (1 + len(AXES)), level)
@@ -293,6 +320,7 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
             if cell is not None:
                 scored.append(cell)
         out += _with_windows(lin, lib, scored)
+        lib.forget()
     return out
 
 
