@@ -57,6 +57,7 @@ from .attitude import Attitude, MotionSamples, Points, Quadrature, RateDerivativ
 _LOWER = shape_basis("lower")  # (6, 3, 3)
 SAMPLE_CHUNK = 8192  # motion samples whose derivatives are formed at once (memory, not speed)
 GYRO_CHUNK = 12  # columns of a gyro term whose attitude sensitivities are formed at once (memory)
+_PATTERN_CHUNK = 1 << 20  # J_l's entries placed at once when its sparsity is first found (memory)
 BLOCKS = ("accel_rest", "gyro_rest", "walk_gyro", "walk_accel", "turn", "accel_motion", "k_prior")
 SENSOR_OF = {"accel_rest": "accel", "gyro_rest": "gyro", "turn": "gyro", "accel_motion": "accel",
              "walk_gyro": "gyro", "walk_accel": "accel", "k_prior": "prior"}
@@ -756,28 +757,46 @@ class JointModel:
         self.__dict__.pop("_jl_pattern", None)
 
     def _local_jacobian(self, trip: list, N: int, Pl: int) -> sp.csr_matrix:
-        """J_l (N, Pl) CSR from its entries ``trip`` (rows, columns, values). Its sparsity does not
-        change between evaluations: this first one sorts the entries into CSR order and keeps
-        each entry's place (when no entry repeats a row and column), where later evaluations
-        write their values (``residuals``)."""
-        vv = np.concatenate([t[2] for t in trip]) if trip else np.zeros(0)
-        width = max(Pl, 1)
-        keys = [np.asarray(rr, np.int64) * width + cc for rr, cc in
-                (t[0]() if t[1] is None else (t[0], t[1]) for t in trip)]
-        key = np.concatenate(keys) if keys else np.zeros(0, np.int64)  # one sort key: 7x faster than lexsort
-        del keys
-        order = np.argsort(key, kind="stable")
-        key = key[order]  # row-major: each row's entries in column order
-        if len(key) > 1 and np.any(key[1:] == key[:-1]):  # repeats add up
-            return sp.csr_matrix((vv[order], (key // width, key % width)), shape=(N, Pl))
-        idx = np.int32 if max(N, Pl, len(vv)) < 2**31 else np.int64
-        indptr = np.searchsorted(key, np.arange(N + 1) * width).astype(idx)
-        indices = (key % width).astype(idx)
+        """J_l (N, Pl) CSR from its entries ``trip`` (rows, columns, values; emptied as it is
+        read). Its sparsity does not change between evaluations: this first one sorts the entries
+        into CSR order and keeps each entry's place (when no entry repeats a row and column), where
+        later evaluations write their values (``residuals``). Memory: one sort key and its order
+        beside the entries, the rest formed ``_PATTERN_CHUNK`` entries at a time."""
+        sizes = [len(t[2]) for t in trip]
+        nnz, width = sum(sizes), max(Pl, 1)
+        key = np.empty(nnz, np.int64)  # one sort key: 7x faster than lexsort
+        pos = 0
+        for i, (rr, cc, _) in enumerate(trip):
+            if cc is None:  # a constant pattern given as where() (``local.flat``)
+                rr, cc = rr()
+            np.add(np.multiply(rr, width, dtype=np.int64), cc, out=key[pos:pos + sizes[i]])
+            pos += sizes[i]
+        order = np.argsort(key, kind="stable")  # row-major: each row's entries in column order
+        idx = np.int32 if max(N, Pl, nnz) < 2**31 else np.int64
+        indices, counts, repeats = np.empty(nnz, idx), np.zeros(N, np.int64), False
+        for a in range(0, nnz, _PATTERN_CHUNK):
+            k = key[order[a:a + _PATTERN_CHUNK + 1]]  # one more: a repeat across the chunks' edge
+            repeats = repeats or bool(np.any(k[1:] == k[:-1]))
+            k = k[:_PATTERN_CHUNK]
+            indices[a:a + len(k)] = k % width
+            counts += np.bincount(k // width, minlength=N)
+        if repeats:  # repeats add up
+            vv = np.concatenate([t[2] for t in trip])
+            return sp.csr_matrix((vv[order], (key[order] // width, key[order] % width)), shape=(N, Pl))
         del key
-        place = np.empty(len(order), idx)
-        place[order] = np.arange(len(order), dtype=idx)
+        indptr = np.r_[0, np.cumsum(counts)].astype(idx)
+        place = np.empty(nnz, idx)
+        for a in range(0, nnz, _PATTERN_CHUNK):
+            place[order[a:a + _PATTERN_CHUNK]] = np.arange(a, min(a + _PATTERN_CHUNK, nnz), dtype=idx)
+        del order
+        data = np.empty(nnz)
+        pos = 0
+        for i, n in enumerate(sizes):
+            data[place[pos:pos + n]] = trip[i][2]
+            trip[i] = None
+            pos += n
         self.__dict__["_jl_pattern"] = (place, indices, indptr)
-        return sp.csr_matrix((vv[order], indices, indptr), shape=(N, Pl))
+        return sp.csr_matrix((data, indices, indptr), shape=(N, Pl))
 
     def _gyro_cols(self, j: np.ndarray) -> tuple[list[tuple[str | None, np.ndarray]], np.ndarray]:
         """Where the 21 rate-derivative columns of motions ``j`` go: globals M_g, b_g, [k_g], and

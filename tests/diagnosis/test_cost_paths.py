@@ -4,6 +4,8 @@ Jacobian, the Jacobians written over old ones, the reused quadrature (issue 13: 
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from forward_synth import G, noise_free_imu, rests_from_truth, small_gimbal
@@ -47,15 +49,19 @@ def test_the_residual_alone_and_the_signals_equal_the_full_evaluation(model):
         assert np.array_equal(value, sig0[key]), key
 
 
-def test_local_jacobian_from_the_cached_sparsity_equals_a_fresh_one(model):
+def test_local_jacobian_from_the_cached_sparsity_equals_a_fresh_one(model, monkeypatch):
+    from imupipe.diagnosis import forward
+
     m, _ = model
     x_g, x_l = _point(m, 1)
     _, _, cached = m.residuals(x_g, x_l)  # the pattern is already cached by earlier calls
-    m.forget_jacobian_places()  # as the map does after its last fit: the next one sorts again
-    _, _, fresh = m.residuals(x_g, x_l)
-    assert "_jl_pattern" in m.__dict__
-    assert (cached != fresh).nnz == 0
-    assert np.array_equal(cached.indptr, fresh.indptr) and np.array_equal(cached.indices, fresh.indices)
+    for chunk in (forward._PATTERN_CHUNK, 7):  # its entries placed all at once, or 7 at a time
+        monkeypatch.setattr(forward, "_PATTERN_CHUNK", chunk)
+        m.forget_jacobian_places()  # as the map does after its last fit: the next one sorts again
+        _, _, fresh = m.residuals(x_g, x_l)
+        assert "_jl_pattern" in m.__dict__
+        assert np.array_equal(cached.data, fresh.data)
+        assert np.array_equal(cached.indptr, fresh.indptr) and np.array_equal(cached.indices, fresh.indices)
 
 
 def test_jacobians_written_over_earlier_ones_equal_fresh_ones(model):
@@ -114,3 +120,28 @@ def test_a_model_reusing_anothers_quadrature_is_the_same_model(model):
     assert np.array_equal(fresh.accel_points.h, reused.accel_points.h)
     x_g, x_l = fresh.x_g0, fresh.x_l0
     assert np.array_equal(fresh.residuals(x_g, x_l)[0], reused.residuals(x_g, x_l)[0])
+
+
+@pytest.mark.parametrize("repeat", [False, True])
+def test_local_jacobian_from_entries_is_scipys_csr(monkeypatch, repeat):
+    """Entries in any order (some given as where()), repeats adding up: scipy's CSR of the same
+    entries, whatever the chunk its places are formed by."""
+    import scipy.sparse as sp
+
+    from imupipe.diagnosis import forward
+
+    rng = np.random.default_rng(7)
+    N, Pl = 40, 9
+    rows, cols = np.divmod(rng.permutation(N * Pl)[:150], Pl)
+    if repeat:
+        rows, cols = np.r_[rows, rows[3]], np.r_[cols, cols[3]]
+    vals = rng.normal(size=len(rows))
+    want = sp.csr_matrix((vals, (rows, cols)), shape=(N, Pl))
+    cut = [0, 50, 100, len(rows)]
+    for chunk in (1 << 20, 3):
+        monkeypatch.setattr(forward, "_PATTERN_CHUNK", chunk)
+        trip = [(rows[a:b], cols[a:b], vals[a:b]) for a, b in itertools.pairwise(cut)]
+        trip[1] = (lambda r=rows[50:100], c=cols[50:100]: (r, c), None, vals[50:100])
+        holder = type("Holder", (), {})()
+        got = JointModel._local_jacobian(holder, trip, N, Pl)
+        assert abs(got - want).max() < 1e-15 and ("_jl_pattern" in holder.__dict__) != repeat
