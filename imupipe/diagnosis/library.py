@@ -101,19 +101,22 @@ class _Carried:
     """Motion rows a gyro term reaches through the integrated attitude. A slow signal is its mean
     over a motion's few seconds there, a constant gyro bias: its column on those rows is the
     bias's Jacobian column ``J`` (m, 3) times that mean ``X`` (m, u). A signal that changes within
-    a motion (the specific force, turning with the attitude) has its exact column in ``E`` (m, k)
-    (``Signals.gyro_motion_column``); zero for the others."""
+    a motion (the specific force, turning with the attitude) has its exact columns ``exact`` in
+    ``E`` (m, len(exact)) (``Signals.gyro_motion_column``)."""
 
     rows: np.ndarray  # (m,)
     J: np.ndarray
     X: np.ndarray
     E: np.ndarray
+    exact: list[int]
 
     def __len__(self) -> int:
         return len(self.rows)
 
     def form(self, sl: slice, axis: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return self.rows[sl], self.J[sl][:, axis] * self.X[sl][:, use] + self.E[sl]
+        C = self.J[sl][:, axis] * self.X[sl][:, use]
+        C[:, self.exact] += self.E[sl]
+        return self.rows[sl], C
 
 
 @dataclass
@@ -236,9 +239,7 @@ def _carried(s: Signals, signals: list, exact: list[bool]) -> _Carried:
         basis[used.index(u), i, j] = 1.0
     coef = np.column_stack([signals[u][1] for u in used]) if used else np.zeros((len(ms.t), 0))
     dy = RateDerivatives(coef, basis)
-    E = np.zeros((len(at), len(columns)))
-    E[:, by_column] = s.gyro_motion_column(dy)
-    return _Carried(at, lin.J_g[at, lin.globals.slices["b_g"]], X, E)
+    return _Carried(at, lin.J_g[at, lin.globals.slices["b_g"]], X, s.gyro_motion_column(dy), by_column)
 
 
 def bootstrap_draws(tests: int, level: float) -> int:
