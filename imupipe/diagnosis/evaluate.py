@@ -28,7 +28,6 @@ import numpy as np
 import pyarrow as pa
 
 from .. import schemas, tails
-
 from ..allan import batch_variance_ratio
 from ..models import T_REF_C, TriadCalibration
 from ..observations import Rests, Turns

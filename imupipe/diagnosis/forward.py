@@ -757,8 +757,8 @@ class JointModel:
         self.__dict__.pop("_jl_pattern", None)
 
     def _local_jacobian(self, trip: list, N: int, Pl: int) -> sp.csr_matrix:
-        """J_l (N, Pl) CSR from its entries ``trip`` (rows, columns, values; emptied as it is
-        read). Its sparsity does not change between evaluations: this first one sorts the entries
+        """J_l (N, Pl) CSR from its entries ``trip`` (rows, columns, values; each source let go
+        once its values are placed). Its sparsity does not change between evaluations: this first one sorts the entries
         into CSR order and keeps each entry's place (when no entry repeats a row and column), where
         later evaluations write their values (``residuals``). Memory: one sort key and its order
         beside the entries, the rest formed ``_PATTERN_CHUNK`` entries at a time."""
@@ -781,8 +781,9 @@ class JointModel:
             indices[a:a + len(k)] = k % width
             counts += np.bincount(k // width, minlength=N)
         if repeats:  # repeats add up
-            vv = np.concatenate([t[2] for t in trip])
-            return sp.csr_matrix((vv[order], (key[order] // width, key[order] % width)), shape=(N, Pl))
+            key = key[order]
+            return sp.csr_matrix((np.concatenate([t[2] for t in trip])[order], (key // width, key % width)),
+                                 shape=(N, Pl))
         del key
         indptr = np.r_[0, np.cumsum(counts)].astype(idx)
         place = np.empty(nnz, idx)
