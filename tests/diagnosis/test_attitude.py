@@ -43,13 +43,13 @@ def test_segmented_scan_and_cumsum_restart_per_segment():
     assert np.allclose(c[5:6], x[5:6]) and np.allclose(c[:5], np.cumsum(x[:5], 0))
 
 
-
 def test_quaternion_product_on_components_is_the_same_bits():
     """The scan's product on component rows, into a buffer, against quat_mul: bit for bit."""
     rng = np.random.default_rng(3)
     p, q = rng.normal(size=(2, 1000, 4))
     out = quat_mul_into(np.ascontiguousarray(p.T), np.ascontiguousarray(q.T), np.empty((4, 1000)), np.empty(1000))
     assert np.array_equal(out.T, quat_mul(p, q))
+
 
 def test_smooth_rotation_about_a_fixed_axis_is_integrated_to_fourth_order():
     """Minimum-jerk turn of 2 rad in 2 s sampled at 100 Hz with jittered stamps: the attitude at

@@ -145,3 +145,32 @@ def test_local_jacobian_from_entries_is_scipys_csr(monkeypatch, repeat):
         holder = type("Holder", (), {})()
         got = JointModel._local_jacobian(holder, trip, N, Pl)
         assert abs(got - want).max() < 1e-15 and ("_jl_pattern" in holder.__dict__) != repeat
+
+
+def test_the_map_without_its_jacobians_after_the_structure_cells_is_the_same_map():
+    """The run's map stage forms the sample table only when first read and drops the fit's
+    Jacobians once the structure cells are scored: the same document and table."""
+    from imupipe.diagnosis.evaluate import evaluate
+    from imupipe.diagnosis.residual_map import residual_map
+    from imupipe.sim.sensor import default_imu
+
+    out, truth = small_gimbal(4, default_imu(np.random.default_rng([4, 2])), n_rotations=12)
+    rests, turns = rests_from_truth(out, truth)
+    streams = {s: (out.t, out.raw[s]) for s in ("accel", "gyro")}
+    cal = truth.calibration
+    kept, lean = (evaluate(streams, rests, turns, cal["accel"], cal["gyro"], G) for _ in range(2))
+    assert callable(lean.table)  # not formed yet
+    doc = residual_map(kept)
+    assert residual_map(lean, keep_jacobians=False) == doc
+    assert lean.lin.J_g is None and lean.lin.J_l is None and kept.lin.J_g is not None
+    for name in kept.samples.column_names:
+        a, b = (_values(ev.samples.column(name)) for ev in (kept, lean))
+        assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name  # NaN where no value
+    assert not callable(lean.table)
+
+
+def _values(column) -> np.ndarray:
+    column = column.combine_chunks()
+    if hasattr(column, "flatten"):  # fixed-size lists (x, y, z)
+        column = column.flatten()
+    return column.to_numpy(zero_copy_only=False)
