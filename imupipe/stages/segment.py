@@ -42,6 +42,7 @@ CALM = 1.54  # median of a 3-dof chi: a sample as calm as a rest's typical one
 VIBRATION_RATIO = 2.0  # holds tremble when short raw means spread this many times more than white
 FIRST_PASS = 3.0  # the floor: median windowed variance below this times the noise_quantile
 INITIAL_REST_MOVING = 0.1  # an "initial rest" that moves this fraction of its time is not one
+ROWS = 1 << 16  # samples whose windowed statistics are formed at once (memory)
 
 
 class SegmentParams(Params):
@@ -71,20 +72,33 @@ class SegmentParams(Params):
 def xyz(table: pa.Table) -> tuple[np.ndarray, np.ndarray]:
     """(t_ns (k,) int64, values (k, 3)) of a sample table."""
     return table.column("t_ns").to_numpy(), np.column_stack(
-        [table.column(c).to_numpy() for c in ("x", "y", "z")]).astype(float)
+        [table.column(c).to_numpy() for c in ("x", "y", "z")]).astype(float, copy=False)
 
 
 def _window(t_s: np.ndarray, window_s: float) -> tuple[np.ndarray, np.ndarray]:
     return np.searchsorted(t_s, t_s - window_s / 2, "left"), np.searchsorted(t_s, t_s + window_s / 2, "right")
 
 
+def _running_sum(v: np.ndarray) -> np.ndarray:
+    """(k + 1, ...) the sums of ``v``'s first 0, 1, ..., k rows."""
+    c = np.empty((len(v) + 1, *v.shape[1:]))
+    c[0] = 0.0
+    np.cumsum(v, axis=0, out=c[1:])
+    return c
+
+
 def box_mean(t_s: np.ndarray, v: np.ndarray, window_s: float) -> np.ndarray:
-    """(k, 3) mean of ``v`` (k, 3) over [t - w/2, t + w/2] per sample (``v`` itself for w = 0)."""
+    """(k, 3) mean of ``v`` (k, 3) over [t - w/2, t + w/2] per sample (``v`` itself for w = 0);
+    ``ROWS`` samples at a time past the running sums (a long recording's temporaries)."""
     if window_s <= 0:
         return v
-    c = np.vstack([np.zeros((1, v.shape[1])), np.cumsum(v - v[0], axis=0)])
+    c = _running_sum(v - v[0])
     lo, hi = _window(t_s, window_s)
-    return (c[hi] - c[lo]) / (hi - lo)[:, None] + v[0]
+    out = np.empty(v.shape)
+    for a in range(0, len(v), ROWS):
+        r = slice(a, a + ROWS)
+        out[r] = (c[hi[r]] - c[lo[r]]) / (hi[r] - lo[r])[:, None] + v[0]
+    return out
 
 
 def lowpass(t_s: np.ndarray, v: np.ndarray, lowpass_s: float) -> np.ndarray:
@@ -96,14 +110,20 @@ def windowed_variance(t_s: np.ndarray, v: np.ndarray, window_s: float, per_axis:
     """(k,) trace of the covariance of ``v`` (k, 3) over [t - w/2, t + w/2] per sample
     ((k, 3) the per-axis variances with ``per_axis``)."""
     v = v - np.median(v, axis=0)  # conditioning of the running sums
-    c1 = np.vstack([np.zeros((1, 3)), np.cumsum(v, axis=0)])
-    c2 = np.vstack([np.zeros((1, 3)), np.cumsum(v * v, axis=0)])
+    c1 = _running_sum(v)
+    np.multiply(v, v, out=v)
+    c2 = _running_sum(v)
+    del v
     lo, hi = _window(t_s, window_s)
-    n = (hi - lo).astype(float)
-    s1, s2 = c1[hi] - c1[lo], c2[hi] - c2[lo]
-    var = np.maximum((s2 - s1 * s1 / n[:, None]) / np.maximum(n - 1, 1)[:, None], 0)
-    var[n < 3] = np.inf  # too few samples to call it still
-    return var if per_axis else var.sum(axis=1)
+    out = np.empty((len(t_s), 3) if per_axis else len(t_s))
+    for a in range(0, len(t_s), ROWS):
+        r = slice(a, a + ROWS)
+        n = (hi[r] - lo[r]).astype(float)
+        s1, s2 = c1[hi[r]] - c1[lo[r]], c2[hi[r]] - c2[lo[r]]
+        var = np.maximum((s2 - s1 * s1 / n[:, None]) / np.maximum(n - 1, 1)[:, None], 0)
+        var[n < 3] = np.inf  # too few samples to call it still
+        out[r] = var if per_axis else var.sum(axis=1)
+    return out
 
 
 def runs(flag: np.ndarray) -> list[tuple[int, int]]:
