@@ -758,10 +758,10 @@ class JointModel:
 
     def _local_jacobian(self, trip: list, N: int, Pl: int) -> sp.csr_matrix:
         """J_l (N, Pl) CSR from its entries ``trip`` (rows, columns, values; each source let go
-        once its values are placed). Its sparsity does not change between evaluations: this first one sorts the entries
-        into CSR order and keeps each entry's place (when no entry repeats a row and column), where
-        later evaluations write their values (``residuals``). Memory: one sort key and its order
-        beside the entries, the rest formed ``_PATTERN_CHUNK`` entries at a time."""
+        once its values are placed). Its sparsity does not change between evaluations: this first
+        one sorts the entries into CSR order and keeps each entry's place (when no entry repeats a
+        row and column), where later evaluations write their values (``residuals``). Memory: one
+        sort key and its order beside the entries, the rest formed ``_PATTERN_CHUNK`` at a time."""
         sizes = [len(t[2]) for t in trip]
         nnz, width = sum(sizes), max(Pl, 1)
         key = np.empty(nnz, np.int64)  # one sort key: 7x faster than lexsort

@@ -200,7 +200,7 @@ def libraries(s: Signals) -> list[_Library]:
     if carried:  # a response that differs with the rate's sign (scale asymmetry, rectification)
         rate = [(f"|x_{AXES[j]}|", np.abs(s.x_gyro_motion[:, j]), "rad/s") for j in range(3)]
         out.append(_Library("gyro", "motion", _per_axis(rate), lambda: [_carried(s, rate, [True] * 3)], carried))
-    if motion_a:
+    if motion_a:  # its names read here, its signals formed again when scored (not held meanwhile)
         out.append(_Library("accel", "motion", _per_axis(_accel_motion(s)),
                             lambda: [_Readings(s.rows_m, model.W_sample, _matrix(_accel_motion(s)))], len(s.rows_m)))
     return [lib for lib in out if lib.readings]
