@@ -183,13 +183,14 @@ def windows(t: np.ndarray, contrib: np.ndarray, gap: float = 2.0, keep: int = 12
     windows holding most of the chi2 excess, in time order."""
     if not len(t):
         return []
-    o = np.argsort(t)
-    ts, cs = t[o], contrib[o]
-    brk = np.flatnonzero(np.diff(ts) > gap) + 1
-    starts, ends = np.r_[0, brk], np.r_[brk, len(ts)]
-    wins = [(float(ts[a]), float(ts[b - 1]), float(cs[a:b].sum())) for a, b in zip(starts, ends, strict=True)]
-    wins = sorted(wins, key=lambda w: -w[2])[:keep]
-    return sorted((w[0], w[1]) for w in wins)
+    if np.any(t[1:] < t[:-1]):  # a cell's rows mostly come in time order already
+        o = np.argsort(t)
+        t, contrib = t[o], contrib[o]
+    starts = np.r_[0, np.flatnonzero(np.diff(t) > gap) + 1]
+    ends = np.r_[starts[1:], len(t)]
+    excess = np.add.reduceat(contrib, starts)
+    best = sorted(range(len(starts)), key=lambda i: -excess[i])[:keep]
+    return sorted((float(t[starts[i]]), float(t[ends[i] - 1])) for i in best)
 
 
 def _bins(name: str, x: np.ndarray) -> list[tuple[float, float]]:
@@ -208,17 +209,35 @@ def _bins(name: str, x: np.ndarray) -> list[tuple[float, float]]:
     return [(float(a), float(b)) for a, b in zip(e[:-1], e[1:], strict=True) if b > a]
 
 
+def levels(a: np.ndarray) -> list:
+    """The distinct values of ``a``, sorted: one pass per value (a few), where ``np.unique``
+    hashes or sorts every row."""
+    out = []
+    while len(a):
+        out.append(a[0])
+        a = a[a != a[0]]
+    return sorted(out)
+
+
+def pairs(sensor: np.ndarray, regime: np.ndarray) -> list[tuple[tuple[str, str], np.ndarray]]:
+    """The (sensor, regime) pairs of rows, sorted, each with its rows' indices."""
+    out = []
+    for s in levels(sensor):
+        of_sensor = sensor == s
+        for g in levels(regime[of_sensor]):
+            out.append(((s, g), np.flatnonzero(of_sensor & (regime == g))))
+    return out
+
+
 def cells(rs: RowSet) -> list[Cell]:
     """Every cell of ``rs`` with at least ``MIN_DOF`` degrees of freedom."""
     out = []
-    for sensor in np.unique(rs.sensor):
-        for regime in np.unique(rs.regime[rs.sensor == sensor]):
-            base = (rs.sensor == sensor) & (rs.regime == regime)
-            axes = sorted(set(rs.axis[base].tolist()))
-            groups = [((AXES[a],), base & (rs.axis == a)) for a in axes if a >= 0]
-            groups.append((tuple(AXES), base))
-            for ax, sel in groups:
-                out += _cells_of(rs, sensor, ax, regime, sel)
+    for (sensor, regime), idx in pairs(rs.sensor, rs.regime):
+        part = rs.take(idx)
+        groups = [((AXES[a],), part.axis == a) for a in levels(part.axis) if a >= 0]
+        groups.append((tuple(AXES), np.ones(len(idx), bool)))
+        for ax, sel in groups:
+            out += _cells_of(part, sensor, ax, regime, sel)
     return out
 
 
@@ -234,12 +253,13 @@ def _cells_of(rs: RowSet, sensor: str, axes: tuple[str, ...], regime: str, sel: 
 
     label = "all" if rs.family == "model" else "within-rest scatter"
     out = [make(label, -np.inf, np.inf, sel)]
+    n_sel = sel.sum()
     for name, x in rs.var.items():
         if regime == "static" and name in ("|omega| rad/s", "|alpha| rad/s^2"):
             continue
         for lo, hi in _bins(name, x[sel]):
             m = sel & ((x == lo) if name == "gravity along" else (x >= lo) & (x < hi))
-            if m.sum() == sel.sum():
+            if m.sum() == n_sel:
                 continue  # the bin is the whole set: the "all" cell says it
             v = name if rs.family == "model" else f"{name} (within-rest scatter)"
             out.append(make(v, lo, hi, m))
@@ -249,12 +269,14 @@ def _cells_of(rs: RowSet, sensor: str, axes: tuple[str, ...], regime: str, sel: 
 def _batch_sd(t: np.ndarray, r2: np.ndarray, w: np.ndarray) -> float:
     """Standard error of sum(r2) / sum(w) from the spread of its ``BATCH_S`` time batches
     (ratio estimator; 0 with fewer than ``MIN_BATCHES``)."""
-    b = np.floor((t - t.min()) / BATCH_S).astype(np.int64) if len(t) else np.zeros(0, np.int64)
-    _, inv = np.unique(b, return_inverse=True)
-    B = inv.max() + 1 if len(inv) else 0
+    if not len(t):
+        return 0.0
+    b = np.floor((t - t.min()) / BATCH_S).astype(np.int64)
+    S, W, n = np.bincount(b, r2), np.bincount(b, w), np.bincount(b)
+    S, W = S[n > 0], W[n > 0]  # the batches that hold rows
+    B = len(S)
     if B < MIN_BATCHES:
         return 0.0
-    S, W = np.bincount(inv, r2, B), np.bincount(inv, w, B)
     R = S.sum() / W.sum()
     return float(np.sqrt(B / (B - 1) * np.sum((S - R * W) ** 2)) / W.sum())
 
@@ -394,13 +416,12 @@ def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR,
         if name in ev.white_chi2 and b["dof"] > 0:  # before the recording's own (coloured) noise model
             blocks[-1]["chi2_per_dof_white"] = ev.white_chi2[name] / b["dof"]
     for sc in (noise_rs, *extra_rs):
-        for sensor, regime in sorted(set(zip(sc.sensor, sc.regime))):
-            m = (sc.sensor == sensor) & (sc.regime == regime)
+        for (sensor, regime), m in pairs(sc.sensor, sc.regime):
             c2, dof = float((sc.r[m] ** 2).sum()), float(sc.w[m].sum())
             kind = "rest" if regime == "static" else "motion"
             name = f"{sensor}_rest_samples" if sc.family == "noise" else f"{sensor}_{kind}"
             blocks.append({"block": name, "sensor": str(sensor), "kind": kind,
-                           "chi2": c2, "dof": dof, "chi2_per_dof": c2 / dof if dof else None, "rows": int(m.sum())})
+                           "chi2": c2, "dof": dof, "chi2_per_dof": c2 / dof if dof else None, "rows": len(m)})
     cell_docs = []
     for rank, i in enumerate(order):
         c = all_cells[i]
