@@ -30,6 +30,7 @@ from scipy.linalg import cho_solve, cholesky, solve_triangular
 from ..errors import SolverError
 
 ROW_CHUNK = 1 << 16  # rows of a Jacobian taken at once where a product would copy it whole (memory)
+HOPEFUL = 1e-6  # a step that cut the cost by more (relative) leaves its successor likely taken
 
 
 @dataclass
@@ -300,43 +301,54 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
     the relative decrease of the cost falls below ``tol``; then one undamped Gauss-Newton step
     polishes the solution (the damping would otherwise leave it ~1e-8 short). ``fixed_globals``:
     only the locals move; ``J_g`` is still returned at the optimum. ``residual(x_g, x_l) -> r``
-    (optional) judges the trial points: the Jacobians are then formed only where a step is
-    taken, over the old ones (``residuals(x_g, x_l, out=(J_g, J_l))``: one set in memory, and
-    no fresh pages for the kernel to clear at every step).
+    (optional): the Jacobians are then formed over the old ones
+    (``residuals(x_g, x_l, out=(J_g, J_l))``: one set in memory, and no fresh pages for the
+    kernel to clear at every step). After a step that cut the cost by more than ``HOPEFUL``
+    of it, the next trial point is expected to be taken too: its Jacobians are formed with its
+    residual (and formed again at the old point when it is refused); otherwise, near the
+    optimum where rounding decides, ``residual`` alone judges it.
     """
     def step(J_g: np.ndarray, J_l: sp.csr_matrix, r: np.ndarray, lam: float) -> tuple[np.ndarray, np.ndarray]:
         d_g, d_l = Bordered(J_g[:, :0] if fixed_globals else J_g, J_l, offsets, damping=lam).step(r)
         return (np.zeros(len(x_g)) if fixed_globals else d_g), d_l
 
-    def trial(g: np.ndarray, l: np.ndarray) -> tuple:
-        return residuals(g, l) if residual is None else (residual(g, l), None, None)
-
     def over(J_g: np.ndarray, J_l: sp.csr_matrix, g: np.ndarray, l: np.ndarray) -> tuple:
-        """The Jacobians at an accepted point, written over ``J_g``, ``J_l``."""
-        return residuals(g, l, out=(J_g, J_l))[1:]
+        """The residual and Jacobians at ``g``, ``l``, the Jacobians written over ``J_g``, ``J_l``."""
+        return residuals(g, l, out=(J_g, J_l))
+
+    def trial(g: np.ndarray, l: np.ndarray, hopeful: bool) -> tuple:
+        """The residual at a trial point, with its Jacobians when ``hopeful`` (None otherwise)."""
+        if residual is None:
+            return residuals(g, l)
+        return over(J_g, J_l, g, l) if hopeful else (residual(g, l), None, None)
 
     r, J_g, J_l = residuals(x_g, x_l)
     cost = float(r @ r)
     lam = 1e-6
     converged = False
+    hopeful = True  # the next trial point is expected to be taken (see the docstring)
     it = 0
     for it in range(1, max_iter + 1):
         d_g, d_l = step(J_g, J_l, r, lam)
         while True:
             cand_g, cand_l = x_g + d_g, x_l + d_l
-            r2, J_g2, J_l2 = trial(cand_g, cand_l)
+            r2, J_g2, J_l2 = trial(cand_g, cand_l, hopeful)
             cost2 = float(r2 @ r2)
             if np.isfinite(cost2) and cost2 <= cost:
                 break
+            if residual is not None and J_g2 is not None:  # written over: the current point's again
+                _, J_g, J_l = over(J_g, J_l, x_g, x_l)
             del r2, J_g2, J_l2
+            hopeful = False
             lam *= 10.0
             if lam > 1e8:
                 return x_g, x_l, r, J_g, J_l, it, converged
             d_g, d_l = step(J_g, J_l, r, lam)
         decrease = (cost - cost2) / max(cost, 1e-300)
+        hopeful = decrease > HOPEFUL
         x_g, x_l, cost = cand_g, cand_l, cost2
         if J_g2 is None:
-            J_g2, J_l2 = over(J_g, J_l, x_g, x_l)
+            J_g2, J_l2 = over(J_g, J_l, x_g, x_l)[1:]
         r, J_g, J_l = r2, J_g2, J_l2
         lam = max(lam / 10.0, 1e-12)
         if decrease < tol:
@@ -344,10 +356,12 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
             break
     if converged:  # an undamped Gauss-Newton step lands on the optimum (quadratic convergence)
         d_g, d_l = step(J_g, J_l, r, 0.0)
-        r2, J_g2, J_l2 = trial(x_g + d_g, x_l + d_l)
+        r2, J_g2, J_l2 = trial(x_g + d_g, x_l + d_l, hopeful)
         if np.isfinite(r2 @ r2) and float(r2 @ r2) <= cost:
             x_g, x_l, r = x_g + d_g, x_l + d_l, r2
             if J_g2 is None:
-                J_g2, J_l2 = over(J_g, J_l, x_g, x_l)
+                J_g2, J_l2 = over(J_g, J_l, x_g, x_l)[1:]
             J_g, J_l = J_g2, J_l2
+        elif residual is not None and J_g2 is not None:
+            _, J_g, J_l = over(J_g, J_l, x_g, x_l)
     return x_g, x_l, r, J_g, J_l, it, converged

@@ -95,3 +95,34 @@ def test_levenberg_marquardt_solves_a_nonlinear_chain():
     xg, xl, r, *_ , converged = solve_least_squares(residuals, np.array([0.0, 0.0]), z + 0.1, offsets)
     assert converged
     assert abs(xg[1] - c) < 0.05
+
+
+def test_levenberg_marquardt_forming_jacobians_in_place_follows_the_same_path():
+    """Rosenbrock's valley (globals) beside one linear local: the first steps overshoot and are
+    refused. With ``residual`` given, a trial after a large decrease forms its Jacobians over
+    the current ones (refused: formed again at the current point); the path and the optimum are
+    the same as with fresh Jacobians at every trial."""
+    offsets = np.array([0, 1])
+    calls = {"in_place": 0, "residual": 0}
+
+    def residuals(xg, xl, out=None):
+        x, y = xg
+        r = np.array([10 * (y - x * x), 1 - x, xl[0] - 1.0])
+        J_g = np.zeros((3, 2)) if out is None else out[0]
+        J_g[:] = [[-20 * x, 10], [-1, 0], [0, 0]]
+        if out is not None:
+            calls["in_place"] += 1
+        return r, J_g, sp.csr_matrix(([1.0], ([2], [0])), shape=(3, 1))
+
+    def residual(xg, xl):
+        calls["residual"] += 1
+        return residuals(xg, xl)[0]
+
+    start = (np.array([-1.2, 1.0]), np.array([0.0]))
+    fresh = solve_least_squares(residuals, *start, offsets, max_iter=200)
+    in_place = solve_least_squares(residuals, *start, offsets, max_iter=200, residual=residual)
+    assert calls["in_place"] > 0 and calls["residual"] > 0  # both kinds of trial were taken
+    for a, b in zip(fresh[:5], in_place[:5], strict=True):
+        np.testing.assert_array_equal(a if not sp.issparse(a) else a.toarray(), b if not sp.issparse(b) else b.toarray())
+    assert fresh[5:] == in_place[5:]
+    np.testing.assert_allclose(in_place[0], [1.0, 1.0], atol=1e-6)
