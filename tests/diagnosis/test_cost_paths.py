@@ -1,7 +1,8 @@
 """The residual engine's cheap paths give the numbers of the plain ones: the residual without its
 Jacobian, the factored rate derivatives, J_l from its cached sparsity and from entries placed by
 chunks, the fixed-globals fit's Jacobian, the Jacobians written over old ones, the reused
-quadrature, the map with its Jacobians dropped early (issue 13: results identical within 1e-9)."""
+quadrature, the map with its Jacobians dropped early, its cells' bookkeeping (issue 13: results
+identical within 1e-9)."""
 
 from __future__ import annotations
 
@@ -175,3 +176,33 @@ def _values(column) -> np.ndarray:
     if hasattr(column, "flatten"):  # fixed-size lists (x, y, z)
         column = column.flatten()
     return column.to_numpy(zero_copy_only=False)
+
+
+def test_map_bookkeeping_without_hashing_or_sorting_every_row():
+    """The residual map's cell bookkeeping: distinct values in a pass per value, pairs of
+    (sensor, regime) with their rows, batch spreads by bincount (empty batches skipped) and
+    windows of rows in time order, against ``np.unique`` and sorting."""
+    from imupipe.diagnosis import residual_map as rm
+
+    rng = np.random.default_rng(5)
+    sensor = rng.choice(np.array(["gyro", "accel", "mag"]), 1000)
+    regime = rng.choice(np.array(["static", "motion"]), 1000)
+    axis = rng.integers(-1, 3, 1000)
+    assert rm.levels(sensor) == list(np.unique(sensor)) and rm.levels(axis) == list(np.unique(axis))
+    found = rm.pairs(sensor, regime)
+    assert [k for k, _ in found] == sorted(set(zip(sensor.tolist(), regime.tolist(), strict=True)))
+    for (s, g), idx in found:
+        np.testing.assert_array_equal(idx, np.flatnonzero((sensor == s) & (regime == g)))
+
+    t = np.sort(np.r_[rng.uniform(0, 40, 300), rng.uniform(100, 200, 300)])  # batches 8-19 empty
+    r2, w = rng.chisquare(1, 600), rng.uniform(0.5, 1, 600)
+    _, inv = np.unique(np.floor((t - t.min()) / rm.BATCH_S), return_inverse=True)
+    S, W = np.bincount(inv, r2), np.bincount(inv, w)
+    B, R = len(S), S.sum() / W.sum()
+    assert rm._batch_sd(t, r2, w) == np.sqrt(B / (B - 1) * np.sum((S - R * W) ** 2)) / W.sum()
+
+    order = rng.permutation(600)
+    excess = r2 - w
+    assert rm.windows(t[order], excess[order]) == rm.windows(t, excess)
+    heavier = (t[300], t[-1]) if excess[300:].sum() > excess[:300].sum() else (t[0], t[299])
+    assert rm.windows(t, excess, gap=30.0, keep=1) == [heavier]
