@@ -34,6 +34,7 @@ _SMALL = 1e-4
 # steps (or instants) whose attitude quantities are formed at once: temporaries of a few MiB, which the
 # allocator reuses, where whole-recording ones are fresh pages the kernel clears every time
 STEP_CHUNK = 1 << 14
+_PATTERN_PROBE = 256  # rows of local nodes that tell whether their patterns repeat
 
 
 def left_jacobian(a: np.ndarray) -> np.ndarray:
@@ -122,15 +123,30 @@ def _integral_rows(t: np.ndarray, motion: np.ndarray, s: np.ndarray, tau: np.nda
     d = np.where(s + 1 < first + count, t[np.minimum(s + 1, N - 1)] - t[s], 1.0)
     d = np.where(d > 0, d, 1.0)
     x = (t[idx] - t[s][:, None]) / d[:, None]  # (k, width) local nodes
-    # rows: nodes, columns: monomials; padded nodes and monomials form an identity block
-    V = np.where(valid[:, :, None] & valid[:, None, :], x[:, :, None] ** j[None, None, :], 0.0)
-    V += np.where(~valid[:, :, None] & (j[:, None] == j[None, :])[None], 1.0, 0.0)
-    coef = np.linalg.inv(V)  # (k, monomial, node): polynomial coefficients per node's value
+    coef = _node_coefficients(x, valid)
     u = (tau / d)[:, None]
     mono = np.where(valid, u ** (j + 1) / (j + 1), 0.0)  # integral of x^j from 0 to u
     wts = d[:, None] * np.einsum("km,kmn->kn", mono, coef)
     wts = np.where(valid, wts, 0.0)
     return sp.csr_matrix((wts.ravel(), (np.repeat(np.arange(k), width), idx.ravel())), shape=(k, N))
+
+
+def _node_coefficients(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(k, monomial, node) the polynomial coefficients per node's value: the inverse of each
+    row's Vandermonde matrix of nodes ``x`` (k, w) (padded nodes and monomials form an identity
+    block). Samples at a steady rate give a few dozen distinct rows of nodes: each is inverted
+    once (the same numbers; checked on the first ``_PATTERN_PROBE`` rows, as jittered time
+    stamps make every row distinct)."""
+    key = np.ascontiguousarray(np.where(valid, x, np.inf))  # a padded node: a pattern of its own
+    rows = key.view(np.dtype((np.void, key.itemsize * key.shape[1])))[:, 0]
+    if len(rows) > _PATTERN_PROBE and 2 * len(np.unique(rows[:_PATTERN_PROBE])) <= _PATTERN_PROBE:
+        _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
+        return _node_coefficients(x[first], valid[first])[inverse]
+    j = np.arange(x.shape[1])
+    # rows: nodes, columns: monomials
+    V = np.where(valid[:, :, None] & valid[:, None, :], x[:, :, None] ** j[None, None, :], 0.0)
+    V += np.where(~valid[:, :, None] & (j[:, None] == j[None, :])[None], 1.0, 0.0)
+    return np.linalg.inv(V)
 
 
 @dataclass(frozen=True)

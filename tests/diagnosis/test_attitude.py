@@ -171,3 +171,28 @@ def test_attitude_formed_by_ranges_of_steps_equals_it_formed_at_once(monkeypatch
     assert len(quad.ranges) > 2
     for whole, ranged in zip(*got, strict=True):
         assert np.allclose(whole, ranged, rtol=1e-13, atol=1e-13)
+
+
+def test_steady_sampling_shares_its_node_patterns_with_the_same_weights(monkeypatch):
+    """Samples at a steady rate give a few node patterns, each inverted once; jittered ones are
+    inverted row by row. Both give the quadrature weights of the row-by-row path, bit for bit."""
+    from imupipe.diagnosis import attitude
+
+    rng = np.random.default_rng(4)
+    steady = [5.0 * j + np.arange(int(rng.integers(3, 300))) * 0.01 for j in range(8)]
+    jittered = [t + rng.uniform(0, 1e-4, len(t)) for t in steady]
+    for turns in (steady, jittered):
+        ms = MotionSamples.from_turns(turns, [np.zeros((len(t), 3)) for t in turns])
+        at = (ms.t[:-1] + 0.003, ms.motion[:-1])
+        shared, points = Quadrature(ms).A, Quadrature(ms).points(*at).W
+        monkeypatch.setattr(attitude, "_PATTERN_PROBE", len(ms))  # no probe passes: row by row
+        for a, b in ((shared, Quadrature(ms).A), (points, Quadrature(ms).points(*at).W)):
+            assert (a != b).nnz == 0 and np.array_equal(a.indices, b.indices)
+        monkeypatch.undo()
+    inverted = []
+    inv = np.linalg.inv
+    monkeypatch.setattr(np.linalg, "inv", lambda V: inverted.append(len(V)) or inv(V))
+    for turns in (steady, jittered):
+        Quadrature(MotionSamples.from_turns(turns, [np.zeros((len(t), 3)) for t in turns]))
+    steps = sum(len(t) for t in steady) - len(steady)
+    assert 5 * inverted[0] < steps and inverted[1] == steps  # steady: far fewer patterns; jittered: each step
