@@ -233,33 +233,37 @@ def cells(rs: RowSet) -> list[Cell]:
     """Every cell of ``rs`` with at least ``MIN_DOF`` degrees of freedom."""
     out = []
     for (sensor, regime), idx in pairs(rs.sensor, rs.regime):
-        part = rs.take(idx)
-        groups = [((AXES[a],), part.axis == a) for a in levels(part.axis) if a >= 0]
-        groups.append((tuple(AXES), np.ones(len(idx), bool)))
-        for ax, sel in groups:
-            out += _cells_of(part, sensor, ax, regime, sel)
+        axis = rs.axis[idx]
+        groups = [((AXES[a],), idx[axis == a]) for a in levels(axis) if a >= 0]
+        groups.append((tuple(AXES), idx))
+        for axes, rows in groups:
+            out += _cells_of(rs, rows, sensor, axes, regime)
     return out
 
 
-def _cells_of(rs: RowSet, sensor: str, axes: tuple[str, ...], regime: str, sel: np.ndarray) -> list[Cell]:
-    def make(variable: str, lo: float, hi: float, m: np.ndarray) -> Cell | None:
-        idx = np.flatnonzero(m)
-        dof = float(rs.w[idx].sum())
+def _cells_of(rs: RowSet, rows: np.ndarray, sensor: str, axes: tuple[str, ...], regime: str) -> list[Cell]:
+    """The cells of ``rows`` (sorted indices into ``rs``): all of them, then each bin of each
+    regime variable (taken one at a time: a long recording's rows are not copied whole)."""
+    r, w, t = rs.r[rows], rs.w[rows], rs.t[rows]
+
+    def make(variable: str, lo: float, hi: float, m: np.ndarray | None = None) -> Cell | None:
+        r_m, w_m, t_m = (r, w, t) if m is None else (r[m], w[m], t[m])
+        dof = float(w_m.sum())
         if dof < MIN_DOF:
             return None
-        r2 = rs.r[idx] ** 2
+        r2 = r_m ** 2
         return Cell(sensor, axes, regime, variable, lo, hi, float(r2.sum()), dof,
-                    windows(rs.t[idx], r2 - rs.w[idx]), _batch_sd(rs.t[idx], r2, rs.w[idx]))
+                    windows(t_m, r2 - w_m), _batch_sd(t_m, r2, w_m))
 
     label = "all" if rs.family == "model" else "within-rest scatter"
-    out = [make(label, -np.inf, np.inf, sel)]
-    n_sel = sel.sum()
+    out = [make(label, -np.inf, np.inf)]
     for name, x in rs.var.items():
         if regime == "static" and name in ("|omega| rad/s", "|alpha| rad/s^2"):
             continue
-        for lo, hi in _bins(name, x[sel]):
-            m = sel & ((x == lo) if name == "gravity along" else (x >= lo) & (x < hi))
-            if m.sum() == n_sel:
+        x = x[rows]
+        for lo, hi in _bins(name, x):
+            m = (x == lo) if name == "gravity along" else (x >= lo) & (x < hi)
+            if np.count_nonzero(m) == len(rows):
                 continue  # the bin is the whole set: the "all" cell says it
             v = name if rs.family == "model" else f"{name} (within-rest scatter)"
             out.append(make(v, lo, hi, m))
