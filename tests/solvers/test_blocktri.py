@@ -127,3 +127,32 @@ def test_levenberg_marquardt_forming_jacobians_in_place_follows_the_same_path():
         np.testing.assert_array_equal(dense(a), dense(b))
     assert fresh[5:] == in_place[5:]
     np.testing.assert_allclose(in_place[0], [1.0, 1.0], atol=1e-6)
+
+
+def test_gram_from_runs_of_rows_alike_matches_the_sparse_product(monkeypatch):
+    """A per-sample Jacobian's shape: a stretch of rows with K entries each, whose columns
+    slide in runs of several lengths (knot intervals), between rows of other lengths touching
+    the same columns. Dense blocks per run, by chunks of rows, give the sparse product's J^T J."""
+    from imupipe.solvers import blocktri
+
+    rng = np.random.default_rng(7)
+    q, trip, row = 60, [], 0
+    for _ in range(30):  # rows before the stretch, of 1 to 3 entries
+        for c in rng.choice(q, int(rng.integers(1, 4)), replace=False):
+            trip.append((row, c, rng.normal()))
+        row += 1
+    first = 0
+    while first + 5 < q:  # the stretch: runs of 1 to 9 rows over 5 neighbouring columns
+        for _ in range(int(rng.integers(1, 10))):
+            trip += [(row, c, rng.normal()) for c in range(first, first + 5)]
+            row += 1
+        first += int(rng.integers(1, 3))
+    trip += [(row, c, rng.normal()) for c in (0, 7, 59)]  # a row after it
+    rr, cc, vv = zip(*trip, strict=True)
+    J = sp.csr_matrix((vv, (rr, cc)), shape=(row + 1, q))
+    monkeypatch.setattr(blocktri, "MIN_STRETCH", 8)
+    want = (J.T @ J).toarray()
+    for chunk in (1 << 16, 7):
+        got = _gram(J, chunk=chunk)
+        np.testing.assert_allclose(got.toarray(), want, rtol=1e-13, atol=1e-13)
+        assert got.has_sorted_indices
