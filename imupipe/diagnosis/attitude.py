@@ -310,18 +310,20 @@ class Attitude:
             np.matmul(R0, quat_to_matrix(quat_exp(pts.W[c] @ self.omega)), out=out[c])
         return out
 
-    def _steps_and_sums(self, D: np.ndarray, before: bool = True) -> tuple[np.ndarray | None, np.ndarray]:
+    def _steps_and_sums(self, D: np.ndarray, before: bool = True, into: np.ndarray | None = None
+                        ) -> tuple[np.ndarray | None, np.ndarray]:
         """The running sums within each motion, before each step, of each step's start-frame
-        attitude change per unit parameter change (S, 3, P) (``before=False``: None) and their
-        totals through each motion's last step (m', 3, P); by ranges of steps, so temporaries
-        stay small. Kept for the last ``D`` when ``before`` (the end-points and the samples of
-        one residual evaluation share them)."""
+        attitude change per unit parameter change (S, 3, P) (``before=False``: None; written
+        into ``into`` when it has their shape) and their totals through each motion's last step
+        (m', 3, P); by ranges of steps, so temporaries stay small. Kept for the last ``D`` when
+        ``before`` (the end-points and the samples of one residual evaluation share them)."""
         memo = self.__dict__.get("_memo")
         if memo is not None and memo[0] is D:
             return memo[1], memo[2]
         quad = self.quad
         P = D.shape[2]
-        cum = np.empty((len(self.a), 3, P)) if before else None
+        shape = (len(self.a), 3, P)
+        cum = (into if into is not None and into.shape == shape else np.empty(shape)) if before else None
         last = np.empty((len(quad.last), 3, P))
         for lo, hi in quad.ranges:
             s = slice(lo, hi)
@@ -351,10 +353,17 @@ class Attitude:
         out[pts.h < 0] = 0.0
         return out
 
-    def end_sensitivity(self, D: np.ndarray, before: bool = False) -> np.ndarray:
+    def end_sensitivity(self, D: np.ndarray, before: bool = False, into: np.ndarray | None = None) -> np.ndarray:
         """(m, 3, P) the same at each motion's last sample (zeros for motions without steps);
-        ``before``: also keep the sums before every step for ``sensitivity`` with this ``D``."""
+        ``before``: also keep the sums before every step for ``sensitivity`` with this ``D``
+        (in ``into``, an earlier attitude's that is given up, when it has their shape)."""
         out = np.zeros((self.quad.samples.count, 3, D.shape[2]))
         if len(self.a):
-            out[self.quad.seg[self.quad.last]] = self._steps_and_sums(D, before)[1]
+            out[self.quad.seg[self.quad.last]] = self._steps_and_sums(D, before, into)[1]
         return out
+
+    @property
+    def sums_before(self) -> np.ndarray | None:
+        """The sums before every step kept by the last ``end_sensitivity(..., before=True)``."""
+        memo = self.__dict__.get("_memo")
+        return None if memo is None else memo[1]
