@@ -13,7 +13,7 @@ from imupipe.diagnosis.attitude import (
     segmented_cumsum,
     segmented_scan,
 )
-from imupipe.rotations import compose, exp_so3, quat_exp, quat_mul, quat_mul_into, quat_to_matrix
+from imupipe.rotations import compose, exp_so3, quat_exp, quat_mul, quat_mul_into, quat_to_matrix, skew
 
 
 def _motions(rng, m=4):
@@ -49,6 +49,20 @@ def test_quaternion_product_on_components_is_the_same_bits():
     p, q = rng.normal(size=(2, 1000, 4))
     out = quat_mul_into(np.ascontiguousarray(p.T), np.ascontiguousarray(q.T), np.empty((4, 1000)), np.empty(1000))
     assert np.array_equal(out.T, quat_mul(p, q))
+
+
+def test_rotation_matrices_and_cross_products_of_any_leading_shape():
+    """quat_to_matrix and skew, written entry by entry: the rotation of exp_so3 and the cross
+    product, for stacks of any shape."""
+    rng = np.random.default_rng(8)
+    v, u = rng.normal(size=(2, 5, 7, 3))
+    np.testing.assert_allclose(skew(v) @ u[..., None], np.cross(v, u)[..., None], rtol=1e-14, atol=1e-14)
+    angle = np.linalg.norm(v, axis=-1)
+    R = quat_to_matrix(quat_exp(v))
+    want = np.stack([[exp_so3(v[i, j] / angle[i, j], angle[i, j]) for j in range(7)] for i in range(5)])
+    np.testing.assert_allclose(R, want, rtol=1e-13, atol=1e-14)
+    np.testing.assert_allclose(R @ np.swapaxes(R, -1, -2), np.broadcast_to(np.eye(3), R.shape), atol=1e-14)
+    assert quat_to_matrix(np.array([2.0, 0, 0, 0])).tolist() == np.eye(3).tolist()  # normalised first
 
 
 def test_smooth_rotation_about_a_fixed_axis_is_integrated_to_fourth_order():
