@@ -13,7 +13,15 @@ from imupipe.diagnosis.attitude import (
     segmented_cumsum,
     segmented_scan,
 )
-from imupipe.rotations import compose, exp_so3, quat_exp, quat_mul, quat_mul_into, quat_to_matrix, skew
+from imupipe.rotations import (
+    compose,
+    exp_so3,
+    quat_exp,
+    quat_mul,
+    quat_mul_into,
+    quat_to_matrix,
+    skew,
+)
 
 
 def _motions(rng, m=4):
