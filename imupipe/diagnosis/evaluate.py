@@ -266,14 +266,16 @@ def _white_rest_chi2(model: JointModel, lin: Linearised, white: Rests) -> dict[s
 # --------------------------------------------------------------------------- per-sample table
 
 
+KINDS = ("rest", "motion", "excluded")  # a sample's kind in the table, by its code
+
+
 def _segments(rests: Rests, t: np.ndarray, power_times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per sample time: segment id (2 i for rest i, 2 i + 1 for the motion after it) and kind."""
+    """Per sample time: segment id (2 i for rest i, 2 i + 1 for the motion after it) and kind
+    (its code in ``KINDS``)."""
     i = np.searchsorted(rests.t_start_s, t, "right") - 1
     in_rest = (i >= 0) & (t <= rests.t_end_s[np.maximum(i, 0)])
     seg = np.where(in_rest, 2 * i, 2 * i + 1)
-    kind = np.where(in_rest, "rest", "motion").astype(object)
-    kind[i < 0] = "motion"
-    return seg, kind
+    return seg, np.where(in_rest, 0, 1).astype(np.int8)
 
 
 def _motion_rates(model: JointModel, omega: np.ndarray, Q: np.ndarray, t: np.ndarray
@@ -313,10 +315,10 @@ def sample_table(model: JointModel, lin: Linearised, streams, rests: Rests, Q: n
         n = len(t)
         seg, kind = _segments(rests, t, power_times)
         for w0, w1 in excluded:
-            kind[(t >= w0) & (t <= w1) & (kind == "motion")] = "excluded"
+            kind[(t >= w0) & (t <= w1) & (kind == 1)] = 2
         T = model.temperature_at(t)
         pred, whit, grav = (np.full((n, 3), np.nan) for _ in range(3))
-        rest = kind == "rest"
+        rest = kind == 0
         if rest.any():  # the rest's direction, the bias walk interpolated across the rest
             r = seg[rest] // 2
             frac = np.clip((t[rest] - rests.t_start_s[r]) / np.maximum(model.length[r], 1e-12), 0, 1)[:, None]
@@ -335,8 +337,8 @@ def sample_table(model: JointModel, lin: Linearised, streams, rests: Rests, Q: n
             grav[idx] = sig["gravity_motion"] @ Q
         w_norm, a_norm = _motion_rates(model, omega_all, Q, t)
         parts.append(pa.table({
-            "sensor": pa.array([sensor] * n), "t_s": t, "t_on_s": t - _last_power_on(t, power_times, t_all),
-            "segment": seg.astype(np.int64), "kind": pa.array(kind.astype(str)),
+            "sensor": pa.repeat(sensor, n), "t_s": t, "t_on_s": t - _last_power_on(t, power_times, t_all),
+            "segment": seg.astype(np.int64), "kind": pa.DictionaryArray.from_arrays(kind, KINDS).cast(pa.string()),
             "temperature": T, "temperature_rate": np.gradient(T, t) if n > 1 else np.zeros(n),
             "omega_norm": w_norm, "alpha_norm": a_norm,
             "gravity": _triples(grav), "predicted": _triples(pred), "residual": _triples(y - pred),
