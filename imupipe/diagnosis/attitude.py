@@ -224,7 +224,7 @@ class Points:
     tau: np.ndarray
     W: sp.csr_matrix
 
-    def subset(self, idx: np.ndarray) -> Points:
+    def subset(self, idx: np.ndarray | slice) -> Points:
         return Points(self.h[idx], self.tau[idx], self.W[idx])
 
 

@@ -946,7 +946,7 @@ class JointModel:
         on the last knot interval, through the end-point too, and those samples (``end``)."""
         c = slice(a, a + n_c)
         Rt = np.swapaxes(geo["R"][c], 1, 2)  # (stacked matmul: far faster than einsum here)
-        Phi = att.sensitivity(D, self.accel_points.subset(np.arange(a, a + n_c)))  # (c, 3, P)
+        Phi = att.sensitivity(D, self.accel_points.subset(slice(a, a + n_c)))  # (c, 3, P)
         WS = geo["WS"]
         dr_dz = WS @ (Rt @ geo["dn"][c] @ geo["Bp"][c])  # d r / d z (c, 3, 2)
         dr_gyro = (WS @ (Rt @ skew(geo["nvec"][c]))) @ Phi  # (c, 3, P)
