@@ -210,12 +210,12 @@ def _bins(name: str, x: np.ndarray) -> list[tuple[float, float]]:
 
 
 def levels(a: np.ndarray) -> list:
-    """The distinct values of ``a``, sorted: one pass per value (a few), where ``np.unique``
-    hashes or sorts every row."""
+    """The distinct values of ``a`` (labels: no NaN), sorted: one pass per value (a few), where
+    ``np.unique`` hashes or sorts every row."""
     out = []
     while len(a):
         out.append(a[0])
-        a = a[a != a[0]]
+        a = a[1:][a[1:] != a[0]]  # shrinks at every pass
     return sorted(out)
 
 
