@@ -237,6 +237,8 @@ def _gram(J: sp.csr_matrix, chunk: int = ROW_CHUNK) -> sp.csr_matrix:
     cols = J.indices[J.indptr[a]:J.indptr[b]].reshape(-1, K)  # views: each row's columns and values
     vals = J.data[J.indptr[a]:J.indptr[b]].reshape(-1, K)
     starts = np.flatnonzero(np.r_[True, np.any(cols[1:] != cols[:-1], axis=1)])
+    if len(starts) * K > len(cols):  # short runs: their blocks would outweigh the rows themselves
+        return _sparse_gram(J, chunk)
     length = np.diff(np.r_[starts, len(cols)])
     blocks = np.empty((len(starts), K, K))
     first = 0

@@ -122,7 +122,7 @@ def test_levenberg_marquardt_forming_jacobians_in_place_follows_the_same_path():
     fresh = solve_least_squares(residuals, *start, offsets, max_iter=200)
     in_place = solve_least_squares(residuals, *start, offsets, max_iter=200, residual=residual)
     assert calls["in_place"] > 0 and calls["residual"] > 0  # both kinds of trial were taken
-    dense = lambda a: a.toarray() if sp.issparse(a) else a  # noqa: E731
+    dense = lambda a: a.toarray() if sp.issparse(a) else a
     for a, b in zip(fresh[:5], in_place[:5], strict=True):
         np.testing.assert_array_equal(dense(a), dense(b))
     assert fresh[5:] == in_place[5:]
@@ -156,3 +156,9 @@ def test_gram_from_runs_of_rows_alike_matches_the_sparse_product(monkeypatch):
         got = _gram(J, chunk=chunk)
         np.testing.assert_allclose(got.toarray(), want, rtol=1e-13, atol=1e-13)
         assert got.has_sorted_indices
+    # a banded matrix's rows each start a run: K x K blocks per row would outweigh it, scipy's product
+    banded = sp.diags([rng.normal(size=200) for _ in range(5)], range(5), shape=(200, 205), format="csr")
+    sparse_calls = []
+    monkeypatch.setattr(blocktri, "_sparse_gram", lambda J, chunk: sparse_calls.append(J.shape) or (J.T @ J).tocsr())
+    np.testing.assert_allclose(_gram(banded).toarray(), (banded.T @ banded).toarray(), rtol=1e-13, atol=1e-13)
+    assert sparse_calls == [banded.shape]
