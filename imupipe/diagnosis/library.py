@@ -100,13 +100,17 @@ class _Readings:
 class _Carried:
     """Motion rows a gyro term reaches through the integrated attitude. A slow signal is its mean
     over a motion's few seconds there, a constant gyro bias: its column on those rows is the
-    bias's Jacobian column ``J`` (m, 3) times that mean ``X`` (m, u). A signal that changes within
-    a motion (the specific force, turning with the attitude) has its exact columns ``exact`` in
-    ``E`` (m, len(exact)) (``Signals.gyro_motion_column``)."""
+    bias's Jacobian column (``J_g``'s ``b_g`` columns on those rows) times that mean (``means``
+    (motions, u), zero for the exact signals, at each row's ``motion``). A signal that changes
+    within a motion (the specific force, turning with the attitude) has its exact columns
+    ``exact`` in ``E`` (m, len(exact)) (``Signals.gyro_motion_column``). Only ``E`` is as long as
+    the rows: the rest is formed by chunks."""
 
     rows: np.ndarray  # (m,)
-    J: np.ndarray
-    X: np.ndarray
+    J_g: np.ndarray
+    b_g: slice
+    motion: np.ndarray  # (m,)
+    means: np.ndarray
     E: np.ndarray
     exact: list[int]
 
@@ -114,9 +118,10 @@ class _Carried:
         return len(self.rows)
 
     def form(self, sl: slice, axis: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        C = self.J[sl][:, axis] * self.X[sl][:, use]
+        rows = self.rows[sl]
+        C = self.J_g[rows, self.b_g][:, axis] * self.means[self.motion[sl]][:, use]
         C[:, self.exact] += self.E[sl]
-        return self.rows[sl], C
+        return rows, C
 
 
 @dataclass
@@ -226,10 +231,10 @@ def _carried(s: Signals, signals: list, exact: list[bool]) -> _Carried:
     at = np.r_[turn, acc]  # = model.motion_rows, the rows of its gyro columns
     motion = np.r_[rows.index[turn], model.accel.motion[rows.index[acc]]] if len(acc) else rows.index[turn]
     count = np.maximum(np.bincount(ms.motion, minlength=ms.count), 1)
-    X = np.zeros((len(at), len(signals)))
+    means = np.zeros((ms.count, len(signals)))
     for u, (_, x, _) in enumerate(signals):
         if not exact[u]:
-            X[:, u] = (np.bincount(ms.motion, x, ms.count) / count)[motion]
+            means[:, u] = np.bincount(ms.motion, x, ms.count) / count
     columns = _per_axis(signals)
     by_column = [c for c, (_, _, _, u) in enumerate(columns) if exact[u]]
     used = sorted({columns[c][3] for c in by_column})
@@ -239,7 +244,7 @@ def _carried(s: Signals, signals: list, exact: list[bool]) -> _Carried:
         basis[used.index(u), i, j] = 1.0
     coef = np.column_stack([signals[u][1] for u in used]) if used else np.zeros((len(ms.t), 0))
     dy = RateDerivatives(coef, basis)
-    return _Carried(at, lin.J_g[at, lin.globals.slices["b_g"]], X, s.gyro_motion_column(dy), by_column)
+    return _Carried(at, lin.J_g, lin.globals.slices["b_g"], motion, means, s.gyro_motion_column(dy), by_column)
 
 
 def bootstrap_draws(tests: int, level: float) -> int:
