@@ -113,7 +113,8 @@ def fit(model: JointModel, max_iter: int = 30, x_g: np.ndarray | None = None,
     """Fit ``model`` from its start (or ``x_g``/``x_l``); ``fixed_globals``: only the nuisances
     move (the model's prediction of a given calibration), the leverage still counts the globals;
     ``leverage=False`` skips the rows' leverages (a fit only its solution is wanted from); with
-    ``fixed_globals`` too, the globals' Jacobian is never formed (``J_g`` None)."""
+    ``fixed_globals`` too, the globals' Jacobian is never formed (``J_g`` None), nor the locals'
+    at the last point when ``max_iter`` ends the fit (``J_l`` None then)."""
     x_g = model.x_g0.copy() if x_g is None else np.asarray(x_g, float)
     x_l = model.x_l0.copy() if x_l is None else np.asarray(x_l, float)
     offsets = model.stages.offsets
@@ -122,7 +123,7 @@ def fit(model: JointModel, max_iter: int = 30, x_g: np.ndarray | None = None,
         else model.residuals
     x_g, x_l, r, J_g, J_l, it, ok = solve_least_squares(
         residuals, x_g, x_l, offsets, max_iter=max_iter, tol=tol, fixed_globals=fixed_globals,
-        residual=lambda g, l: model.residuals(g, l, jacobian=False)[0])
+        residual=lambda g, l: model.residuals(g, l, jacobian=False)[0], final_jacobian=not local_only)
     model.forget_recycled()
     if local_only:
         J_g = None

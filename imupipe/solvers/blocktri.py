@@ -332,7 +332,8 @@ class Bordered:
 
 
 def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np.ndarray,
-                        max_iter: int = 30, tol: float = 1e-10, fixed_globals: bool = False, residual=None):
+                        max_iter: int = 30, tol: float = 1e-10, fixed_globals: bool = False, residual=None,
+                        final_jacobian: bool = True):
     """Levenberg-Marquardt on ``residuals(x_g, x_l) -> (r, J_g, J_l)``.
 
     Returns ``(x_g, x_l, r, J_g, J_l, iterations, converged)`` at the optimum. Converged when
@@ -344,7 +345,9 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
     kernel to clear at every step). After a step that cut the cost by more than ``HOPEFUL``
     of it, the next trial point is expected to be taken too: its Jacobians are formed with its
     residual (and formed again at the old point when it is refused); otherwise, near the
-    optimum where rounding decides, ``residual`` alone judges it.
+    optimum where rounding decides, ``residual`` alone judges it. ``final_jacobian=False`` (with
+    ``residual``): only the solution is wanted when ``max_iter`` ends the fit unconverged, so its
+    last point's Jacobians are not formed (``J_g``, ``J_l`` None then); the path is the same.
     """
     def step(J_g: np.ndarray, J_l: sp.csr_matrix, r: np.ndarray, lam: float) -> tuple[np.ndarray, np.ndarray]:
         d_g, d_l = Bordered(J_g[:, :0] if fixed_globals else J_g, J_l, offsets, damping=lam).step(r)
@@ -367,10 +370,11 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
     hopeful = True  # the next trial point is expected to be taken (see the docstring)
     it = 0
     for it in range(1, max_iter + 1):
+        last = it == max_iter and not final_jacobian and residual is not None
         d_g, d_l = step(J_g, J_l, r, lam)
         while True:
             cand_g, cand_l = x_g + d_g, x_l + d_l
-            r2, J_g2, J_l2 = trial(cand_g, cand_l, hopeful)
+            r2, J_g2, J_l2 = trial(cand_g, cand_l, hopeful and not last)
             cost2 = float(r2 @ r2)
             if np.isfinite(cost2) and cost2 <= cost:
                 break
@@ -385,6 +389,8 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
         decrease = (cost - cost2) / max(cost, 1e-300)
         hopeful = decrease > HOPEFUL
         x_g, x_l, cost = cand_g, cand_l, cost2
+        if last and decrease >= tol:  # the end, unconverged: no polishing step needs them
+            return x_g, x_l, r2, None, None, it, converged
         if J_g2 is None:
             J_g2, J_l2 = over(J_g, J_l, x_g, x_l)[1:]
         r, J_g, J_l = r2, J_g2, J_l2

@@ -129,6 +129,46 @@ def test_levenberg_marquardt_forming_jacobians_in_place_follows_the_same_path():
     np.testing.assert_allclose(in_place[0], [1.0, 1.0], atol=1e-6)
 
 
+def test_levenberg_marquardt_without_the_final_jacobian_ends_at_the_same_point():
+    """``final_jacobian=False``: a fit cut short by ``max_iter`` (the map's screening fit) whose
+    solution alone is wanted takes the same steps, and its last point's Jacobians are never
+    formed (fewer Jacobians; None returned). Converging, it polishes as before."""
+    offsets = np.array([0, 1])
+    full = {"n": 0}
+
+    def residuals(xg, xl, out=None):
+        full["n"] += 1
+        x, y = xg
+        r = np.array([10 * (y - x * x), 1 - x, xl[0] - 1.0])
+        J_g = np.zeros((3, 2)) if out is None else out[0]
+        J_g[:] = [[-20 * x, 10], [-1, 0], [0, 0]]
+        return r, J_g, sp.csr_matrix(([1.0], ([2], [0])), shape=(3, 1))
+
+    def residual(xg, xl):
+        n = full["n"]
+        r = residuals(xg, xl)[0]
+        full["n"] = n  # Jacobians formed are counted, not residuals alone
+        return r
+
+    start = (np.array([-1.2, 1.0]), np.array([0.0]))
+    runs, counts = {}, {}
+    for final in (True, False):
+        full["n"] = 0
+        runs[final] = solve_least_squares(residuals, *start, offsets, max_iter=5, residual=residual,
+                                          final_jacobian=final)
+        counts[final] = full["n"]
+    kept, cut = runs[True], runs[False]
+    assert not cut[6] and cut[3] is None and cut[4] is None
+    for a, b in zip(kept[:3], cut[:3], strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert cut[5] == kept[5] == 5
+    assert counts[False] < counts[True]
+    converging = solve_least_squares(residuals, *start, offsets, max_iter=200, residual=residual,
+                                     final_jacobian=False)
+    assert converging[6] and converging[3] is not None
+    np.testing.assert_allclose(converging[0], [1.0, 1.0], atol=1e-6)
+
+
 def test_gram_from_runs_of_rows_alike_matches_the_sparse_product(monkeypatch):
     """A per-sample Jacobian's shape: a stretch of rows with K entries each, whose columns
     slide in runs of several lengths (knot intervals), between rows of other lengths touching
