@@ -532,7 +532,6 @@ class JointModel:
         ends = (np.cumsum(2 * self.K) - 2)[:, None] + np.arange(2)  # (m, 2) each motion's last interval
         samples = (n_turn + np.arange(len(out) - n_turn)).reshape(-1, 3)
         att = Attitude.integrate(self.quad, self._rates(P, x_l, derivatives=False)[0])
-        geo = None
         for a in range(0, dy.shape[2], GYRO_CHUNK):
             cols = slice(a, min(a + GYRO_CHUNK, dy.shape[2]))
             if isinstance(dy, RateDerivatives):
@@ -541,12 +540,9 @@ class JointModel:
                 rate = np.einsum("ab,nbk->nak", P["M_g"], dy[:, :, cols])
             zK, dz_gyro, _, _, D, *_ = self._endpoints(P, x_l, rate_columns=rate, att=att)
             out[ends, cols] = W_end @ dz_gyro
-            if not len(samples):
-                continue
-            if geo is None:  # zK does not depend on the columns
-                geo = self._sample_geometry(P, x_l, zK, att)
             for b in range(0, len(samples), SAMPLE_CHUNK):
                 n_c = len(samples[b:b + SAMPLE_CHUNK])
+                geo = self._sample_geometry(P, x_l, zK, att, slice(b, b + n_c))
                 out[samples[b:b + n_c], cols] = self._sample_rate_rows(geo, att, D, dz_gyro, b, n_c)[1]
         return out
 
@@ -909,18 +905,19 @@ class JointModel:
             cols[:, 13:16] = np.where(a[q][:, None] >= 0, a[q][:, None] + np.arange(3), -1)
         return cols
 
-    def _sample_geometry(self, P: dict, x_l: np.ndarray, zK: np.ndarray, att: Attitude) -> dict[str, np.ndarray]:
-        """Where each motion sample's gravity comes from: its rotation ``R`` (k, 3, 3) from the
-        motion's start, the start-frame direction ``nvec`` (k, 3) of the gnomonic point
-        interpolated between its knots (weight ``mu``; ``last``: on the motion's last interval)
-        and its derivative ``dn`` (k, 3, 3), the point's basis ``Bp`` (k, 3, 2); ``WS`` (3, 3)
-        the whitened residual's derivative w.r.t. gravity in the body."""
-        acc = self.accel
-        k = len(acc.t)
-        j = acc.motion
+    def _sample_geometry(self, P: dict, x_l: np.ndarray, zK: np.ndarray, att: Attitude, c: slice
+                         ) -> dict[str, np.ndarray]:
+        """Where the gravity of motion samples ``c`` (a slice: the whole-length arrays would raise
+        every evaluation's peak) comes from: their rotation ``R`` (k, 3, 3) from the motion's
+        start, the start-frame direction ``nvec`` (k, 3) of the gnomonic point interpolated
+        between its knots (weight ``mu``; ``last``: on the motion's last interval) and its
+        derivative ``dn`` (k, 3, 3), the point's basis ``Bp`` (k, 3, 2); ``WS`` (3, 3) the
+        whitened residual's derivative w.r.t. gravity in the body."""
+        j = self.accel.motion[c]
+        k = len(j)
         p = self.p[j]
         lay = self._sample_layout()
-        kidx, mu = lay["kidx"], lay["mu"]
+        kidx, mu = lay["kidx"][c], lay["mu"][c]
         Kj = self.K[j]
         ks = self.stages.knot_start[p]
 
@@ -936,23 +933,24 @@ class JointModel:
         z = (1 - mu)[:, None] * knot_value(kidx) + mu[:, None] * knot_value(kidx + 1)
         Bp = self.B[p]
         nvec, dn = _normalise(self.u0[p] + (Bp @ z[:, :, None])[:, :, 0])
-        return {"R": att.rotation_at(self.accel_points), "nvec": nvec, "dn": dn, "Bp": Bp, "mu": mu,
-                "last": lay["last"], "WS": -self.g * self.W_sample @ P["S_a"]}
+        return {"R": att.rotation_at(self.accel_points.subset(c)), "nvec": nvec, "dn": dn, "Bp": Bp, "mu": mu,
+                "last": lay["last"][c], "WS": -self.g * self.W_sample @ P["S_a"]}
 
     def _sample_rate_rows(self, geo: dict, att: Attitude, D, dz_gyro: np.ndarray,
                           a: int, n_c: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """For motion samples ``a`` to ``a + n_c``: d r / d z (n_c, 3, 2) of their rows, d r / d
-        (the rate derivatives ``D``' parameters) (n_c, 3, P) through the attitude at the sample and,
-        on the last knot interval, through the end-point too, and those samples (``end``)."""
+        """For motion samples ``a`` to ``a + n_c`` (``geo``: theirs): d r / d z (n_c, 3, 2) of
+        their rows, d r / d (the rate derivatives ``D``' parameters) (n_c, 3, P) through the attitude
+        at the sample and, on the last knot interval, through the end-point too, and those samples
+        (``end``)."""
         c = slice(a, a + n_c)
-        Rt = np.swapaxes(geo["R"][c], 1, 2)  # (stacked matmul: far faster than einsum here)
-        Phi = att.sensitivity(D, self.accel_points.subset(slice(a, a + n_c)))  # (c, 3, P)
+        Rt = np.swapaxes(geo["R"], 1, 2)  # (stacked matmul: far faster than einsum here)
+        Phi = att.sensitivity(D, self.accel_points.subset(c))  # (c, 3, P)
         WS = geo["WS"]
-        dr_dz = WS @ (Rt @ geo["dn"][c] @ geo["Bp"][c])  # d r / d z (c, 3, 2)
-        dr_gyro = (WS @ (Rt @ skew(geo["nvec"][c]))) @ Phi  # (c, 3, P)
+        dr_dz = WS @ (Rt @ geo["dn"] @ geo["Bp"])  # d r / d z (c, 3, 2)
+        dr_gyro = (WS @ (Rt @ skew(geo["nvec"]))) @ Phi  # (c, 3, P)
         del Phi
-        end = np.flatnonzero(geo["last"][c])
-        mc = geo["mu"][c]
+        end = np.flatnonzero(geo["last"])
+        mc = geo["mu"]
         dr_gyro[end] += mc[end, None, None] * np.einsum("kia,kap->kip", dr_dz[end], dz_gyro[self.accel.motion[c][end]])
         return dr_dz, dr_gyro, end
 
@@ -962,34 +960,31 @@ class JointModel:
         j = acc.motion
         p, q = self.p[j], self.qr[j]
         Pg, gl, g = self.glob.size, self.glob.slices, self.g
-        geo = self._sample_geometry(P, x_l, zK, att)
         lay = self._sample_layout()
         mu = lay["mu"]
-        ub = (np.swapaxes(geo["R"], 1, 2) @ geo["nvec"][:, :, None])[:, :, 0]  # gravity in the body at the sample
         lam = self.lam_acc[:, None]
         waa, wab = self.walk_states(x_l, "wa")
         walk = (1 - lam) * wab[p] + lam * waa[q]
-        f = g * ub
-        pred = self.accel_prediction(P, f, acc.t, walk)
-        r = (acc.y - pred) @ self.W_sample.T
-        sig.update(pred_accel_motion=pred, gravity_motion=ub)
-        if not jac:
-            block(r.ravel(), None)
-            return
-        Jg = block.reserve(3 * k).reshape(k, 3, Pg) if block.globals else None  # written chunk by chunk
-        s0 = block(r.ravel(), None)
+        ub = np.empty((k, 3))  # gravity in the body at each sample, formed chunk by chunk below
+        r = np.empty((k, 3))  # the rows' residuals: placed now, filled once every sample's gravity is known
+        Jg = block.reserve(3 * k).reshape(k, 3, Pg) if jac and block.globals else None  # written chunk by chunk
+        s0 = block(r.reshape(-1), None)
         if Jg is not None:  # M_g and b_g are adjacent columns, k_g apart (cols_g: their 15, -1 where absent)
             assert np.array_equal(cols_g[:12], np.arange(gl["M_g"].start, gl["b_g"].stop))
         WL = np.einsum("ij,ljm->ilm", self.W_sample, _LOWER)  # (3, 6, 3)
         columns = {}  # the entries' local columns: formed only if J_l's sparsity is (once per model)
-        for a in range(0, k, SAMPLE_CHUNK):  # the derivatives of SAMPLE_CHUNK samples at a time
+        for a in range(0, k, SAMPLE_CHUNK):  # the geometry and derivatives of SAMPLE_CHUNK samples at a time
             c = slice(a, a + SAMPLE_CHUNK)
+            geo = self._sample_geometry(P, x_l, zK, att, c)
+            ub[c] = (np.swapaxes(geo["R"], 1, 2) @ geo["nvec"][:, :, None])[:, :, 0]
+            if not jac:
+                continue
             n_c = len(acc.t[c])
             dr_dz, dr_gyro, end = self._sample_rate_rows(geo, att, D, dz_gyro, a, n_c)
             jc, mc = j[c], mu[c]
             if Jg is not None:
                 Jc = Jg[c]
-                Jc[:, :, gl["S_a"]] = -(f[c] @ WL.reshape(-1, 3).T).reshape(n_c, 3, -1)
+                Jc[:, :, gl["S_a"]] = -((g * ub[c]) @ WL.reshape(-1, 3).T).reshape(n_c, 3, -1)
                 Jc[:, :, gl["b_a"]] = -self.W_sample
                 if self.fit_k:
                     Jc[:, :, gl["k_a"]] = -self.W_sample * self.dT_acc[c, None, None]
@@ -1015,3 +1010,6 @@ class JointModel:
                 return rows[keep], np.broadcast_to(columns["cols"][a:a + n_c, None, :], (n_c, 3, 16))[keep]
 
             local.flat(where, vals[keep])
+        pred = self.accel_prediction(P, g * ub, acc.t, walk)
+        np.matmul(acc.y - pred, self.W_sample.T, out=r)
+        sig.update(pred_accel_motion=pred, gravity_motion=ub)
