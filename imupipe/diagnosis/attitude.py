@@ -326,27 +326,43 @@ class Attitude:
         cum = (into if into is not None and into.shape == shape else np.empty(shape)) if before else None
         last = np.empty((len(quad.last), 3, P))
         for lo, hi in quad.ranges:
-            s = slice(lo, hi)
-            per = (self.R_before[s] @ left_jacobian(self.a[s])) @ weighted(quad.A[s], D)
-            run = segmented_cumsum(per, quad.seg[s])
+            per, run = self._per_step(D, lo, hi)
             ends = slice(*np.searchsorted(quad.last, [lo, hi]))
             last[ends] = run[quad.last[ends] - lo]
             if before:
-                np.subtract(run, per, out=cum[s])
+                np.subtract(run, per, out=cum[lo:hi])
         if before:
             object.__setattr__(self, "_memo", (D, cum, last))
         return cum, last
 
+    def _per_step(self, D: np.ndarray, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+        """Steps ``lo`` to ``hi`` (whole motions): each one's start-frame attitude change per unit
+        parameter change (hi - lo, 3, P) and their running sums within each motion."""
+        s = slice(lo, hi)
+        per = (self.R_before[s] @ left_jacobian(self.a[s])) @ weighted(self.quad.A[s], D)
+        return per, segmented_cumsum(per, self.quad.seg[s])
+
     def sensitivity(self, D: np.ndarray, pts: Points) -> np.ndarray:
         """(k, 3, P) start-frame attitude change per unit change of parameters at the instants
-        ``pts``, given ``D`` (N, 3, P) each sample's calibrated-rate derivative."""
+        ``pts``, given ``D`` (N, 3, P) each sample's calibrated-rate derivative. The sums before
+        each step are those ``end_sensitivity(D, before=True)`` kept, else formed here over the
+        whole motions holding the instants' steps alone (a few instants at a time: no (S, 3, P)
+        array)."""
         P = D.shape[2]
         k = len(pts.h)
         if not k or not len(self.a):
             return np.zeros((k, 3, P))
-        before_step, _ = self._steps_and_sums(D)
         hh = np.maximum(pts.h, 0)
-        out = before_step[hh]
+        memo = self.__dict__.get("_memo")
+        if memo is not None and memo[0] is D:
+            out = memo[1][hh]
+        elif (pts.h >= 0).any():
+            seg = self.quad.seg
+            first = int(np.searchsorted(seg, seg[pts.h[pts.h >= 0].min()], "left"))  # its motion's first step
+            per, run = self._per_step(D, first, int(hh.max()) + 1)
+            out = (run - per)[np.maximum(hh - first, 0)]
+        else:
+            out = np.zeros((k, 3, P))
         part = self.R_before[hh] @ left_jacobian(pts.W @ self.omega)
         part = part @ weighted(pts.W, D)
         out += part

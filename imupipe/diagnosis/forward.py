@@ -498,7 +498,9 @@ class JointModel:
         if not jacobian:
             return zK, None, None, att, None, omega, u, du
         G = (np.swapaxes(Bp, 1, 2) - np.einsum("ma,mi->mai", zK, u0p)) / den[:, None, None]  # dz/dw
-        phi_T = att.end_sensitivity(D, before=self.has_samples,  # (m, 3, 21)
+        # the sums before every step are kept for a residual evaluation's samples; a term's columns
+        # (gyro_columns) form them by chunks of samples instead: no (S, 3, k) array at the map's peak
+        phi_T = att.end_sensitivity(D, before=self.has_samples and rate_columns is None,  # (m, 3, 21)
                                     into=self.__dict__.get("_sums") if recycle else None)
         if recycle and self.has_samples:  # fresh pages as long as the recording: cleared by the kernel each time
             self.__dict__["_sums"] = att.sums_before

@@ -204,6 +204,30 @@ def test_attitude_formed_by_ranges_of_steps_equals_it_formed_at_once(monkeypatch
         assert np.allclose(whole, ranged, rtol=1e-13, atol=1e-13)
 
 
+def test_sensitivity_without_kept_sums_forms_them_over_its_instants_motions_alone():
+    """Without the sums ``end_sensitivity(before=True)`` keeps (a term's columns, at the map's
+    peak), ``sensitivity`` forms them over the whole motions holding its instants: the same bits,
+    for chunks of instants that start or end inside a motion, and instants of a motion
+    without steps."""
+    rng = np.random.default_rng(5)
+    t, y = _motions(rng, m=6)
+    t[3], y[3] = t[3][:1], y[3][:1]  # a motion of one sample: no step
+    ms = MotionSamples.from_turns(t, y)
+    D = rng.normal(size=(len(ms), 3, 4))
+    quad = Quadrature(ms)
+    pts = quad.points(ms.t + 0.002, ms.motion)
+    kept = Attitude.integrate(quad, ms.y * 0.5)
+    kept.end_sensitivity(D, before=True)
+    fresh = Attitude.integrate(quad, ms.y * 0.5)
+    ends = fresh.end_sensitivity(D)
+    assert fresh.sums_before is None
+    np.testing.assert_array_equal(ends, kept.end_sensitivity(D))
+    for a, b in ((0, len(ms)), (5, 17), (20, 21), (30, 80)):
+        chunk = pts.subset(slice(a, b))
+        np.testing.assert_array_equal(fresh.sensitivity(D, chunk), kept.sensitivity(D, chunk))
+    assert fresh.sums_before is None  # formed for the instants, not kept
+
+
 def test_steady_sampling_shares_its_node_patterns_with_the_same_weights(monkeypatch):
     """Samples at a steady rate give a few node patterns, each inverted once; jittered ones are
     inverted row by row. Both give the quadrature weights of the row-by-row path, bit for bit."""
