@@ -37,6 +37,8 @@ from .attitude import Attitude
 from .evaluate import Evaluation, white_noise
 from .residual_map import RowSet, _gravity_cell
 
+ROW_CHUNK = 65536  # motion samples whose (n, 3, 3) rotations and whiteners are formed at once (memory)
+
 def rest_rows(rests: Rests, accel: TriadCalibration, mag: TriadCalibration
               ) -> tuple[RowSet, TriadCalibration] | None:
     """Magnitude and dip rows of every rest (axis -1: they belong to no single axis), with the
@@ -122,34 +124,43 @@ def motion_rows(ev: Evaluation, rests: Rests, t_s: np.ndarray, y: np.ndarray, ma
     t, j = t_s[inside], motion[inside]
     T = np.interp(t, *temperature) if temperature is not None and len(temperature[0]) else None
     h = mag.apply(y[inside], T) @ ev.frame.T  # the calibration's frame -> the model's (gauge): Q v
-    R = att.rotation_at(model.quad.points(t, j))  # body at the sample -> body at the motion's start
     # noise: the sample's, through the calibration; the attitude error the gyro's white noise
     # leaves after tau s of a motion turns the field across itself: F^2 tau dt sigma_w^2
     Mg = ev.frame @ mag.M
-    C = np.broadcast_to(Mg @ white_noise(rests, {"mag": (t_s, y)}, "mag") @ Mg.T, (len(t), 3, 3)).copy()
+    C0 = Mg @ white_noise(rests, {"mag": (t_s, y)}, "mag") @ Mg.T
     Sg = P["M_g"] @ model.noise.gyro_sample @ P["M_g"].T
     dt = float(np.median(np.diff(ms.t)[np.diff(ms.motion) == 0])) if len(ms.t) > 1 else 0.0
     tau = t - ms.origin[j]
-    n = h / np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-300)
-    across = np.eye(3) - n[:, :, None] * n[:, None, :]
-    C += (np.einsum("ni,ni->n", h, h) * tau * dt * np.trace(Sg) / 3)[:, None, None] * across
-    del across  # (n, 3, 3) arrays freed as soon as used: this step sits at the map's memory peak
-    L_inv = np.linalg.inv(np.linalg.cholesky(C))
-    del C
+
+    def whitened(c: slice) -> tuple[np.ndarray, np.ndarray]:
+        """The rotations R (body at the sample -> body at the motion's start) and the whiteners
+        L^-1 (C = L L') of samples ``c``: (n, 3, 3) each, formed by chunks (at the map's peak)."""
+        R = att.rotation_at(model.quad.points(t[c], j[c]))
+        n = h[c] / np.maximum(np.linalg.norm(h[c], axis=1, keepdims=True), 1e-300)
+        C = np.broadcast_to(C0, (len(n), 3, 3)) + \
+            (np.einsum("ni,ni->n", h[c], h[c]) * tau[c] * dt * np.trace(Sg) / 3)[:, None, None] * \
+            (np.eye(3) - n[:, :, None] * n[:, None, :])
+        return R, np.linalg.inv(np.linalg.cholesky(C))
+
     # per motion: b = (sum R C^-1 R')^-1 sum R C^-1 h, the field in the body at its start
-    RCi = R @ (np.swapaxes(L_inv, 1, 2) @ L_inv)
     A = np.zeros((ms.count, 3, 3))
     c = np.zeros((ms.count, 3))
-    np.add.at(A, j, RCi @ np.swapaxes(R, 1, 2))
-    np.add.at(c, j, np.einsum("nij,nj->ni", RCi, h))
-    del RCi
+    chunks = [slice(a, a + ROW_CHUNK) for a in range(0, len(t), ROW_CHUNK)]
+    for sl in chunks:
+        R, L_inv = whitened(sl)
+        RCi = R @ (np.swapaxes(L_inv, 1, 2) @ L_inv)
+        np.add.at(A, j[sl], RCi @ np.swapaxes(R, 1, 2))
+        np.add.at(c, j[sl], np.einsum("nij,nj->ni", RCi, h[sl]))
     used = np.unique(j)
     A_inv = np.zeros_like(A)
     A_inv[used] = np.linalg.inv(A[used])
     b = np.einsum("mij,mj->mi", A_inv, c)
-    X = L_inv @ np.swapaxes(R, 1, 2)  # d (whitened row) / d b
-    r = np.einsum("nij,nj->ni", L_inv, h - np.einsum("nji,nj->ni", R, b[j]))
-    lev = np.einsum("nij,njk,nik->ni", X, A_inv[j], X)
+    r, lev = np.empty((len(t), 3)), np.empty((len(t), 3))
+    for sl in chunks:
+        R, L_inv = whitened(sl)
+        X = L_inv @ np.swapaxes(R, 1, 2)  # d (whitened row) / d b
+        r[sl] = np.einsum("nij,nj->ni", L_inv, h[sl] - np.einsum("nji,nj->ni", R, b[j[sl]]))
+        lev[sl] = np.einsum("nij,njk,nik->ni", X, A_inv[j[sl]], X)
     omega_t = np.linalg.norm(np.column_stack([np.interp(t, ms.t, omega[:, a]) for a in range(3)]), axis=1)
     var = {"|omega| rad/s": np.repeat(omega_t, 3), "time s": np.repeat(t, 3)}
     if T is not None:

@@ -101,3 +101,19 @@ def test_motion_rows_are_white_on_a_null_and_see_a_field_sampled_late(fitted):
     assert abs((rs.r ** 2).sum() / dof - 1) < 3 * np.sqrt(2 / dof)
     late = motion_rows(ev, rests, out.t - 0.01, *args)
     assert chi2.sf((late.r ** 2).sum(), late.w.sum()) < 1e-9
+
+
+def test_motion_rows_formed_by_chunks_of_samples_are_the_same_bits(fitted, monkeypatch):
+    """The motions' rotations and whiteners are formed ``ROW_CHUNK`` samples at a time (twice: the
+    per-motion fields' sums, then the rows): chunks that split motions give the same rows."""
+    from imupipe.diagnosis import magnetic
+
+    _, out, truth, _, rests, _, lin = fitted
+    ev = Evaluation(lin, np.eye(3), None)
+    args = (out.t, out.raw["mag"], truth.calibration["mag"], (out.t, out.temperature))
+    whole = motion_rows(ev, rests, *args)
+    monkeypatch.setattr(magnetic, "ROW_CHUNK", 997)
+    chunked = motion_rows(ev, rests, *args)
+    assert len(whole.r) > 3 * 997
+    for a, b in ((whole.r, chunked.r), (whole.w, chunked.w), (whole.t, chunked.t)):
+        np.testing.assert_array_equal(a, b)
