@@ -397,12 +397,16 @@ def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR,
     structure = structure_cells(ev.lin)  # first: its working memory is free again for the rows' cells
     if not keep_jacobians:
         ev.lin.forget_jacobians()
-    model_rs = model_rows(ev)
+    # each family of rows is let go once its cells and blocks are found: one held at a time
+    model_cells = cells(model_rows(ev))
     noise_rs = rest_scatter_rows(ev)
-    extra_rs = extra()  # after the structure cells, whose working memory is then free
-    all_cells = cells(model_rs) + cells(noise_rs) + structure
-    for rs in extra_rs:
-        all_cells += cells(rs)
+    noise_cells, row_blocks = cells(noise_rs), _row_blocks(noise_rs)
+    del noise_rs
+    extra_cells = []
+    for rs in extra():  # after the structure cells, whose working memory is then free
+        extra_cells += cells(rs)
+        row_blocks += _row_blocks(rs)
+    all_cells = model_cells + noise_cells + structure + extra_cells
     p = np.array([c.p_value for c in all_cells])
     flagged = benjamini_hochberg(p, q)
     # flagged first, by the misfit they carry (chi2 - dof: a log-likelihood excess; p-values
@@ -419,13 +423,7 @@ def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR,
                        "chi2_per_dof": b["chi2_per_dof"], "rows": b["rows"]})
         if name in ev.white_chi2 and b["dof"] > 0:  # before the recording's own (coloured) noise model
             blocks[-1]["chi2_per_dof_white"] = ev.white_chi2[name] / b["dof"]
-    for sc in (noise_rs, *extra_rs):
-        for (sensor, regime), m in pairs(sc.sensor, sc.regime):
-            c2, dof = float((sc.r[m] ** 2).sum()), float(sc.w[m].sum())
-            kind = "rest" if regime == "static" else "motion"
-            name = f"{sensor}_rest_samples" if sc.family == "noise" else f"{sensor}_{kind}"
-            blocks.append({"block": name, "sensor": str(sensor), "kind": kind,
-                           "chi2": c2, "dof": dof, "chi2_per_dof": c2 / dof if dof else None, "rows": len(m)})
+    blocks += row_blocks
     cell_docs = []
     for rank, i in enumerate(order):
         c = all_cells[i]
@@ -443,6 +441,19 @@ def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR,
     return {"session": session, "blocks": blocks, "cells": cell_docs,
             "events": [e.to_dict() for e in sorted(events, key=lambda e: e.window[0])],
             "noise_model": noise_summary(ev), "fdr_q": q}
+
+
+def _row_blocks(rs: RowSet) -> list[dict]:
+    """The map's blocks of rows outside the fitted model (within-rest scatter, the magnetometer's):
+    chi2 and dof per (sensor, regime)."""
+    out = []
+    for (sensor, regime), m in pairs(rs.sensor, rs.regime):
+        c2, dof = float((rs.r[m] ** 2).sum()), float(rs.w[m].sum())
+        kind = "rest" if regime == "static" else "motion"
+        name = f"{sensor}_rest_samples" if rs.family == "noise" else f"{sensor}_{kind}"
+        out.append({"block": name, "sensor": str(sensor), "kind": kind,
+                    "chi2": c2, "dof": dof, "chi2_per_dof": c2 / dof if dof else None, "rows": len(m)})
+    return out
 
 
 def _json_edge(x: float) -> float | None:
