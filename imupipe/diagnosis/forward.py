@@ -57,7 +57,6 @@ from .attitude import Attitude, MotionSamples, Points, Quadrature, RateDerivativ
 _LOWER = shape_basis("lower")  # (6, 3, 3)
 SAMPLE_CHUNK = 8192  # motion samples whose derivatives are formed at once (memory, not speed)
 GYRO_CHUNK = 12  # columns of a gyro term whose attitude sensitivities are formed at once (memory)
-_PATTERN_CHUNK = 1 << 20  # J_l's entries placed at once when its sparsity is first found (memory)
 BLOCKS = ("accel_rest", "gyro_rest", "walk_gyro", "walk_accel", "turn", "accel_motion", "k_prior")
 SENSOR_OF = {"accel_rest": "accel", "gyro_rest": "gyro", "turn": "gyro", "accel_motion": "accel",
              "walk_gyro": "gyro", "walk_accel": "accel", "k_prior": "prior"}
@@ -674,13 +673,14 @@ class JointModel:
             else:
                 trip.append((rows[keep].ravel(), cols[keep].ravel(), vals[keep].ravel()))
 
-        def flat(where, vals: np.ndarray) -> None:
+        def flat(where, vals: np.ndarray, span: tuple[int, int]) -> None:
             """Entries ``vals`` (kept ones only) whose rows and columns ``where()`` returns (a
-            constant pattern: asked for only until the model knows J_l's sparsity)."""
+            constant pattern: asked for only until the model knows J_l's sparsity), on rows
+            ``span`` (first, last) at most."""
             if data is not None:
                 put(vals)
             elif jacobian:
-                trip.append((where, None, vals))
+                trip.append((where, span, vals))
 
         local.flat = flat
 
@@ -766,45 +766,59 @@ class JointModel:
         self.__dict__.pop("_jl_pattern", None)
 
     def _local_jacobian(self, trip: list, N: int, Pl: int) -> sp.csr_matrix:
-        """J_l (N, Pl) CSR from its entries ``trip`` (rows, columns, values; each source let go
-        once its values are placed). Its sparsity does not change between evaluations: this first
-        one sorts the entries into CSR order and keeps each entry's place (when no entry repeats a
-        row and column), where later evaluations write their values (``residuals``). Memory: one
-        sort key and its order beside the entries, the rest formed ``_PATTERN_CHUNK`` at a time."""
-        sizes = [len(t[2]) for t in trip]
-        nnz, width = sum(sizes), max(Pl, 1)
-        key = np.empty(nnz, np.int64)  # one sort key: 7x faster than lexsort
-        pos = 0
-        for i, (rr, cc, _) in enumerate(trip):
-            if cc is None:  # a constant pattern given as where() (``local.flat``)
-                rr, cc = rr()
-            np.add(np.multiply(rr, width, dtype=np.int64), cc, out=key[pos:pos + sizes[i]])
-            pos += sizes[i]
-        order = np.argsort(key, kind="stable")  # row-major: each row's entries in column order
+        """J_l (N, Pl) CSR from its entries ``trip`` (rows, columns, values; a constant pattern
+        may come as (``where``, ``span``, values): ``where()`` gives its rows and columns when
+        asked, ``span`` its first and last row, or None). Its sparsity does not change between
+        evaluations: this first one sorts the entries into CSR order and keeps each entry's place
+        (when no entry repeats a row and column), where later evaluations write their values
+        (``residuals``). The sources are sorted in groups whose rows overlap (a motion's turn
+        rows, a chunk of motion samples, the rests'); groups on disjoint rows follow each other
+        in CSR order, so no sort key or order is ever as long as J_l, and each source's values
+        are let go once placed."""
+        sizes = np.array([len(t[2]) for t in trip], np.int64)
+        starts = np.r_[0, np.cumsum(sizes)]
+        nnz, width = int(starts[-1]), max(Pl, 1)
         idx = np.int32 if max(N, Pl, nnz) < 2**31 else np.int64
-        indices, counts, repeats = np.empty(nnz, idx), np.zeros(N, np.int64), False
-        for a in range(0, nnz, _PATTERN_CHUNK):
-            k = key[order[a:a + _PATTERN_CHUNK + 1]]  # one more: a repeat across the chunks' edge
-            repeats = repeats or bool(np.any(k[1:] == k[:-1]))
-            k = k[:_PATTERN_CHUNK]
-            indices[a:a + len(k)] = k % width
-            counts += np.bincount(k // width, minlength=N)
-        if repeats:  # repeats add up
-            key = key[order]
-            return sp.csr_matrix((np.concatenate([t[2] for t in trip])[order], (key // width, key % width)),
-                                 shape=(N, Pl))
-        del key
-        indptr = np.r_[0, np.cumsum(counts)].astype(idx)
-        place = np.empty(nnz, idx)
-        for a in range(0, nnz, _PATTERN_CHUNK):
-            place[order[a:a + _PATTERN_CHUNK]] = np.arange(a, min(a + _PATTERN_CHUNK, nnz), dtype=idx)
-        del order
-        data = np.empty(nnz)
+
+        def entries(i: int) -> tuple[np.ndarray, np.ndarray]:
+            rr, cc, _ = trip[i]
+            return rr() if callable(rr) else (rr, cc)
+
+        present = np.flatnonzero(sizes)
+        spans = np.empty((len(present), 2), np.int64)
+        for n, i in enumerate(present):
+            rr, cc, _ = trip[i]
+            rows = np.asarray(cc) if callable(rr) and cc is not None else entries(i)[0]
+            spans[n] = rows.min(), rows.max()
+        by_first = np.argsort(spans[:, 0], kind="stable")
+        groups, last = [], -1
+        for n in by_first:  # sources whose rows overlap sort together
+            if not groups or spans[n, 0] > last:
+                groups.append([])
+            groups[-1].append(int(present[n]))
+            last = max(last, int(spans[n, 1])) if len(groups[-1]) > 1 else int(spans[n, 1])
+        indices, counts, place = np.empty(nnz, idx), np.zeros(N, np.int64), np.empty(nnz, idx)
         pos = 0
-        for i, n in enumerate(sizes):
-            data[place[pos:pos + n]] = trip[i][2]
-            trip[i] = None
+        for group in groups:
+            group.sort()  # in source order: the stable sort keeps a repeat's entries in it
+            key = np.concatenate([np.multiply(r, width, dtype=np.int64) + c for r, c in map(entries, group)])
+            order = np.argsort(key, kind="stable")  # row-major: each row's entries in column order
+            key = key[order]
+            if np.any(key[1:] == key[:-1]):  # repeats add up
+                rows, cols = (np.concatenate(x) for x in zip(*map(entries, range(len(trip))), strict=True))
+                return sp.csr_matrix((np.concatenate([t[2] for t in trip]), (rows, cols)), shape=(N, Pl))
+            n = len(key)
+            indices[pos:pos + n] = key % width
+            first = int(key[0] // width)
+            counts[first:first + int(key[-1] // width - first) + 1] += np.bincount(key // width - first)
+            source = np.concatenate([np.arange(starts[i], starts[i + 1]) for i in group])
+            place[source[order]] = np.arange(pos, pos + n, dtype=idx)
             pos += n
+        indptr = np.r_[0, np.cumsum(counts)].astype(idx)
+        data = np.empty(nnz)
+        for i in range(len(trip)):
+            data[place[starts[i]:starts[i + 1]]] = trip[i][2]
+            trip[i] = None
         self.__dict__["_jl_pattern"] = (place, indices, indptr)
         return sp.csr_matrix((data, indices, indptr), shape=(N, Pl))
 
@@ -1011,7 +1025,7 @@ class JointModel:
                     columns["cols"] = self._sample_columns(lay)
                 return rows[keep], np.broadcast_to(columns["cols"][a:a + n_c, None, :], (n_c, 3, 16))[keep]
 
-            local.flat(where, vals[keep])
+            local.flat(where, vals[keep], (s0 + 3 * a, s0 + 3 * (a + n_c) - 1))
         pred = self.accel_prediction(P, g * ub, acc.t, walk)
         np.matmul(acc.y - pred, self.W_sample.T, out=r)
         sig.update(pred_accel_motion=pred, gravity_motion=ub)

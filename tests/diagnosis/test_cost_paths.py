@@ -51,19 +51,18 @@ def test_the_residual_alone_and_the_signals_equal_the_full_evaluation(model):
         assert np.array_equal(value, sig0[key]), key
 
 
-def test_local_jacobian_from_the_cached_sparsity_equals_a_fresh_one(model, monkeypatch):
-    from imupipe.diagnosis import forward
-
+def test_local_jacobian_from_the_cached_sparsity_equals_a_fresh_one(model):
     m, _ = model
     x_g, x_l = _point(m, 1)
     _, _, cached = m.residuals(x_g, x_l)  # the pattern is already cached by earlier calls
-    for chunk in (forward._PATTERN_CHUNK, 7):  # its entries placed all at once, or 7 at a time
-        monkeypatch.setattr(forward, "_PATTERN_CHUNK", chunk)
-        m.forget_jacobian_places()  # as the map does after its last fit: the next one sorts again
-        _, _, fresh = m.residuals(x_g, x_l)
-        assert "_jl_pattern" in m.__dict__
-        assert np.array_equal(cached.data, fresh.data)
-        assert np.array_equal(cached.indptr, fresh.indptr) and np.array_equal(cached.indices, fresh.indices)
+    m.forget_jacobian_places()  # as the map does after its last fit: the next one sorts again
+    _, _, fresh = m.residuals(x_g, x_l)
+    assert "_jl_pattern" in m.__dict__
+    assert np.array_equal(cached.data, fresh.data)
+    assert np.array_equal(cached.indptr, fresh.indptr) and np.array_equal(cached.indices, fresh.indices)
+    want = fresh.copy()
+    want.sort_indices()
+    assert np.array_equal(want.indices, fresh.indices)  # CSR order: each row's columns ascending
 
 
 def test_jacobians_written_over_earlier_ones_equal_fresh_ones(model):
@@ -133,28 +132,47 @@ def test_a_model_reusing_anothers_quadrature_is_the_same_model(model):
 
 
 @pytest.mark.parametrize("repeat", [False, True])
-def test_local_jacobian_from_entries_is_scipys_csr(monkeypatch, repeat):
-    """Entries in any order (some given as where()), repeats adding up: scipy's CSR of the same
-    entries, whatever the chunk its places are formed by."""
+def test_local_jacobian_from_entries_is_scipys_csr(repeat):
+    """Entries in any order (some given as where(), with or without their rows' span), repeats
+    adding up: scipy's CSR of the same entries. Sources on disjoint rows, in any source order,
+    are sorted in groups; sources whose rows overlap (the last two) sort together."""
     import scipy.sparse as sp
-
-    from imupipe.diagnosis import forward
 
     rng = np.random.default_rng(7)
     N, Pl = 40, 9
-    rows, cols = np.divmod(rng.permutation(N * Pl)[:150], Pl)
-    if repeat:
-        rows, cols = np.r_[rows, rows[3]], np.r_[cols, cols[3]]
-    vals = rng.normal(size=len(rows))
+    blocks = [(0, 10), (10, 22), (22, 30), (30, 40)]  # rows of each source; the last two overlap below
+    trip, want_rows, want_cols, want_vals = [], [], [], []
+    for b, (lo, hi) in enumerate(blocks):
+        rows, cols = np.divmod(rng.permutation((hi - lo) * Pl)[:25], Pl)
+        rows = rows + lo
+        if b == 3:
+            rows[:3] = [23, 25, 29]  # into the third source's rows (no repeat: its columns differ)
+            cols[:3] = Pl - 1
+        if repeat and b == 1:
+            rows, cols = np.r_[rows, rows[3]], np.r_[cols, cols[3]]
+        vals = rng.normal(size=len(rows))
+        want_rows.append(rows), want_cols.append(cols), want_vals.append(vals)
+        if b == 0:
+            trip.append((lambda r=rows, c=cols: (r, c), None, vals))
+        elif b == 2:
+            trip.append((lambda r=rows, c=cols: (r, c), (lo, hi - 1), vals))
+        else:
+            trip.append((rows, cols, vals))
+    assert not set(zip(want_rows[2], want_cols[2], strict=True)) & {(23, Pl - 1), (25, Pl - 1), (29, Pl - 1)}
+    order = [3, 1, 0, 2]  # source order unlike the rows'
+    trip = [trip[i] for i in order]
+    rows, cols, vals = (np.concatenate([x[i] for i in order]) for x in (want_rows, want_cols, want_vals))
     want = sp.csr_matrix((vals, (rows, cols)), shape=(N, Pl))
-    cut = [0, 50, 100, len(rows)]
-    for chunk in (1 << 20, 3):
-        monkeypatch.setattr(forward, "_PATTERN_CHUNK", chunk)
-        trip = [(rows[a:b], cols[a:b], vals[a:b]) for a, b in itertools.pairwise(cut)]
-        trip[1] = (lambda r=rows[50:100], c=cols[50:100]: (r, c), None, vals[50:100])
-        holder = type("Holder", (), {})()
-        got = JointModel._local_jacobian(holder, trip, N, Pl)
-        assert abs(got - want).max() < 1e-15 and ("_jl_pattern" in holder.__dict__) != repeat
+    holder = type("Holder", (), {})()
+    got = JointModel._local_jacobian(holder, trip, N, Pl)
+    assert ("_jl_pattern" in holder.__dict__) != repeat
+    if repeat:
+        assert abs(got - want).max() < 1e-15
+        return
+    want.sum_duplicates()
+    for a, b in ((got.indptr, want.indptr), (got.indices, want.indices), (got.data, want.data)):
+        np.testing.assert_array_equal(a, b)
+    assert all(t is None for t in trip)  # each source let go once placed
 
 
 def test_the_map_without_its_jacobians_after_the_structure_cells_is_the_same_map():
