@@ -40,7 +40,8 @@ HOPEFUL = 1e-6  # a step that cut the cost by more (relative) leaves its success
 @dataclass
 class BlockTridiagonal:
     """An SPD matrix with stage blocks ``diag[i]`` (n_i, n_i) and ``lower[i]`` = block
-    (i+1, i) of shape (n_{i+1}, n_i). ``offsets`` (len(diag) + 1,) are the stages' first rows."""
+    (i+1, i) of shape (n_{i+1}, n_i). ``offsets`` (len(diag) + 1,) are the stages' first rows.
+    Factored (on first use), it keeps the factors alone: ``diag`` and ``lower`` become None."""
 
     diag: list[np.ndarray]
     lower: list[np.ndarray]
@@ -67,24 +68,30 @@ class BlockTridiagonal:
     # ------------------------------------------------------------------ factor
     def factor(self) -> None:
         """Block Cholesky ``A = L L^T``: ``C_i`` lower-triangular diagonal blocks, ``G_i`` the
-        sub-diagonal blocks of ``L``. Raises ``SolverError`` when ``A`` is not positive definite."""
+        sub-diagonal blocks of ``L``. Raises ``SolverError`` when ``A`` is not positive definite.
+        The factors replace ``A``'s blocks, each let go once used (a long recording's system is
+        then held once, not twice)."""
+        diag, lower = self.diag, self.lower
+        self.diag = self.lower = None
+        n = len(diag)
         C, G = [], []
-        S = self.diag[0]
-        for i in range(len(self.diag)):
+        S = diag[0]
+        for i in range(n):
+            diag[i] = None
             if S.shape[0]:
                 try:
                     Ci = cholesky(S, lower=True)
                 except np.linalg.LinAlgError:
                     raise SolverError("the nuisance parameters are not determined by the data "
-                                      f"(stage {i} of {len(self.diag)})") from None
+                                      f"(stage {i} of {n})") from None
             else:
                 Ci = S
             C.append(Ci)
-            if i + 1 < len(self.diag):
-                E = self.lower[i]
+            if i + 1 < n:
+                E, lower[i] = lower[i], None
                 Gi = solve_triangular(Ci, E.T, lower=True).T if Ci.shape[0] else E[:, :0]
                 G.append(Gi)
-                S = self.diag[i + 1] - Gi @ Gi.T
+                S = diag[i + 1] - Gi @ Gi.T
         self._C, self._G = C, G
 
     def _factors(self) -> tuple[list[np.ndarray], list[np.ndarray]]:

@@ -34,6 +34,7 @@ def test_block_tridiagonal_solve_and_selected_inverse_match_dense():
     bt = BlockTridiagonal.from_sparse(sp.csr_matrix(A), offsets)
     b = rng.normal(size=(len(A), 2))
     assert np.allclose(bt.solve(b), np.linalg.solve(A, b), rtol=1e-10, atol=1e-12)
+    assert bt.diag is None and bt.lower is None  # factored: the factors alone are kept
     Z = bt.selected_sparse().toarray()
     Zd = np.linalg.inv(A)
     mask = Z != 0
