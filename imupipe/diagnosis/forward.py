@@ -790,13 +790,15 @@ class JointModel:
             rr, cc, _ = trip[i]
             rows = np.asarray(cc) if callable(rr) and cc is not None else entries(i)[0]
             spans[n] = rows.min(), rows.max()
-        by_first = np.argsort(spans[:, 0], kind="stable")
         groups, last = [], -1
-        for n in by_first:  # sources whose rows overlap sort together
-            if not groups or spans[n, 0] > last:
-                groups.append([])
-            groups[-1].append(int(present[n]))
-            last = max(last, int(spans[n, 1])) if len(groups[-1]) > 1 else int(spans[n, 1])
+        for n in np.argsort(spans[:, 0], kind="stable"):
+            first_row, last_row = (int(x) for x in spans[n])
+            if groups and first_row <= last:  # overlaps the group before: sorted with it
+                groups[-1].append(int(present[n]))
+                last = max(last, last_row)
+            else:
+                groups.append([int(present[n])])
+                last = last_row
         indices, counts, place = np.empty(nnz, idx), np.zeros(N, np.int64), np.empty(nnz, idx)
         pos = 0
         for group in groups:

@@ -39,6 +39,7 @@ from .residual_map import RowSet, _gravity_cell
 
 ROW_CHUNK = 65536  # motion samples whose (n, 3, 3) rotations and whiteners are formed at once (memory)
 
+
 def rest_rows(rests: Rests, accel: TriadCalibration, mag: TriadCalibration
               ) -> tuple[RowSet, TriadCalibration] | None:
     """Magnitude and dip rows of every rest (axis -1: they belong to no single axis), with the
