@@ -813,21 +813,26 @@ def _stretch_of_rows(lin: Linearised, stretches: int = STRETCHES, session: np.nd
     return stretch
 
 
-def _refit_predict(lin: Linearised, X: np.ndarray, k_base: int, train: np.ndarray,
+def _refit_predict(lin: Linearised, J: np.ndarray, k_base: int, train: np.ndarray,
                    targets: tuple[np.ndarray, ...] = ()) -> list[tuple[np.ndarray, np.ndarray]]:
     """The residual on every row after a Gauss-Newton refit of the globals, every nuisance and the
-    term columns ``X`` (N, k) to the ``train`` rows (the priors always count): without the last
-    ``k - k_base`` columns and with them; for the fit's residual and then each of ``targets``
-    (residual vectors refitted the same way). One factorisation of the system serves all."""
+    term columns to the ``train`` rows (the priors always count), ``J`` (N, P_g + k) the globals'
+    Jacobian beside the term columns: without the last ``k - k_base`` columns and with them; for
+    the fit's residual and then each of ``targets`` (residual vectors refitted the same way). One
+    factorisation of the system serves all. ``J``'s other rows are zeroed while the system and
+    its right-hand sides are formed, then restored (no weighted copy as large as ``J``)."""
     w = train.astype(float)
-    J = np.hstack([lin.J_g, X])
-    Jg = J * w[:, None]
-    Jl = (sp.diags(w) @ lin.J_l).tocsr()
-    system = Bordered(Jg, Jl, lin.model.stages.offsets)
+    held = np.flatnonzero(~train)
+    kept = J[held]
+    J[held] *= 0.0  # as J * w: the same bits
+    try:
+        Jl = (sp.diags(w) @ lin.J_l).tocsr()
+        system = Bordered(J, Jl, lin.model.stages.offsets)
+        rhs = [(-(J.T @ (r * w)), -np.asarray(Jl.T @ (r * w))) for r in (lin.r, *targets)]
+    finally:
+        J[held] = kept
     out = []
-    for r in (lin.r, *targets):
-        rw = r * w
-        g_g, g_l = -(Jg.T @ rw), -np.asarray(Jl.T @ rw)
+    for r, (g_g, g_l) in zip((lin.r, *targets), rhs, strict=True):
         y = system.blocks.solve(g_l)
         pair = []
         for P in (lin.J_g.shape[1] + k_base, J.shape[1]):
@@ -853,16 +858,16 @@ def heldout(lin: Linearised, rp: np.ndarray, finding: Finding, others: list[Find
     if finding.tested.candidate.regime == "motion":
         return _heldout_projected(lin, rp, finding, others)
     stretch = _stretch_of_rows(lin) if stretch is None else stretch
-    X = np.hstack([f.tested.candidate.columns for f in others] + [finding.tested.candidate.columns])
-    k_base = X.shape[1] - finding.tested.candidate.columns.shape[1]
+    J = np.hstack([lin.J_g] + [f.tested.candidate.columns for f in others] + [finding.tested.candidate.columns])
+    k_base = J.shape[1] - lin.J_g.shape[1] - finding.tested.candidate.columns.shape[1]
     signal = finding.tested.candidate.columns @ finding.theta  # the term as fitted to every row
     before, after = np.zeros_like(rp), np.zeros_like(rp)
     added, expected = [], []
     try:
-        whole, whole_signal = _refit_predict(lin, X, k_base, np.ones(len(rp), bool), (signal,))
+        whole, whole_signal = _refit_predict(lin, J, k_base, np.ones(len(rp), bool), (signal,))
         for k in np.unique(stretch[stretch >= 0]):
             test = stretch == k
-            (b, a), held_signal = _refit_predict(lin, X, k_base, ~test, (signal,))
+            (b, a), held_signal = _refit_predict(lin, J, k_base, ~test, (signal,))
             if not (np.all(np.isfinite(b[test])) and np.all(np.isfinite(a[test]))):
                 raise SolverError("a stretch leaves a nuisance undetermined")
             before[test], after[test] = b[test], a[test]

@@ -232,3 +232,32 @@ def test_map_bookkeeping_without_hashing_or_sorting_every_row():
     assert rm.windows(t[order], excess[order]) == rm.windows(t, excess)
     heavier = (t[300], t[-1]) if excess[300:].sum() > excess[:300].sum() else (t[0], t[299])
     assert rm.windows(t, excess, gap=30.0, keep=1) == [heavier]
+
+
+def test_heldout_refit_with_rows_zeroed_in_place_is_the_weighted_copys(fitted):
+    """A held-out refit forms its system on the Jacobian with the held-out rows zeroed in place
+    and restored after: the same bits as on a weighted copy, and the Jacobian left as it was."""
+    import scipy.sparse as sp
+
+    from imupipe.diagnosis.select import _refit_predict
+    from imupipe.solvers.blocktri import Bordered
+
+    lin = fitted[-1]
+    rng = np.random.default_rng(11)
+    X = rng.normal(size=(len(lin.r), 2))
+    J = np.hstack([lin.J_g, X])
+    before = J.copy()
+    train = np.ones(len(lin.r), bool)
+    train[len(train) // 3: len(train) // 2] = False
+    signal = X @ np.array([0.3, -0.2])
+    got = _refit_predict(lin, J, 1, train, (signal,))
+    np.testing.assert_array_equal(J, before)
+    w = train.astype(float)
+    Jw, Jl = before * w[:, None], (sp.diags(w) @ lin.J_l).tocsr()
+    system = Bordered(Jw, Jl, lin.model.stages.offsets)
+    for r, pair in zip((lin.r, signal), got, strict=True):
+        g_g, g_l = -(Jw.T @ (r * w)), -np.asarray(Jl.T @ (r * w))
+        y = system.blocks.solve(g_l)
+        for P, value in zip((lin.J_g.shape[1] + 1, J.shape[1]), pair, strict=True):
+            x_g = np.linalg.solve(system.S[:P, :P], g_g[:P] - system.A_lg[:, :P].T @ y)
+            np.testing.assert_array_equal(value, r + before[:, :P] @ x_g + lin.J_l @ (y - system.X[:, :P] @ x_g))
