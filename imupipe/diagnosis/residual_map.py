@@ -229,10 +229,11 @@ def pairs(sensor: np.ndarray, regime: np.ndarray) -> list[tuple[tuple[str, str],
     return out
 
 
-def cells(rs: RowSet) -> list[Cell]:
-    """Every cell of ``rs`` with at least ``MIN_DOF`` degrees of freedom."""
+def cells(rs: RowSet, groups: list | None = None) -> list[Cell]:
+    """Every cell of ``rs`` with at least ``MIN_DOF`` degrees of freedom (``groups``: its
+    ``pairs``, when already found)."""
     out = []
-    for (sensor, regime), idx in pairs(rs.sensor, rs.regime):
+    for (sensor, regime), idx in pairs(rs.sensor, rs.regime) if groups is None else groups:
         axis = rs.axis[idx]
         groups = [((AXES[a],), idx[axis == a]) for a in levels(axis) if a >= 0]
         groups.append((tuple(AXES), idx))
@@ -399,13 +400,12 @@ def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR,
         ev.lin.forget_jacobians()
     # each family of rows is let go once its cells and blocks are found: one held at a time
     model_cells = cells(model_rows(ev))
-    noise_rs = rest_scatter_rows(ev)
-    noise_cells, row_blocks = cells(noise_rs), _row_blocks(noise_rs)
-    del noise_rs
+    noise_cells, row_blocks = _cells_and_blocks(rest_scatter_rows(ev))
     extra_cells = []
     for rs in extra():  # after the structure cells, whose working memory is then free
-        extra_cells += cells(rs)
-        row_blocks += _row_blocks(rs)
+        c, b = _cells_and_blocks(rs)
+        extra_cells += c
+        row_blocks += b
     all_cells = model_cells + noise_cells + structure + extra_cells
     p = np.array([c.p_value for c in all_cells])
     flagged = benjamini_hochberg(p, q)
@@ -443,17 +443,18 @@ def residual_map(ev: Evaluation, session: str = "", q: float = Q_FDR,
             "noise_model": noise_summary(ev), "fdr_q": q}
 
 
-def _row_blocks(rs: RowSet) -> list[dict]:
-    """The map's blocks of rows outside the fitted model (within-rest scatter, the magnetometer's):
-    chi2 and dof per (sensor, regime)."""
+def _cells_and_blocks(rs: RowSet) -> tuple[list[Cell], list[dict]]:
+    """The cells of rows outside the fitted model (within-rest scatter, the magnetometer's) and
+    their blocks: chi2 and dof per (sensor, regime)."""
+    groups = pairs(rs.sensor, rs.regime)
     out = []
-    for (sensor, regime), m in pairs(rs.sensor, rs.regime):
+    for (sensor, regime), m in groups:
         c2, dof = float((rs.r[m] ** 2).sum()), float(rs.w[m].sum())
         kind = "rest" if regime == "static" else "motion"
         name = f"{sensor}_rest_samples" if rs.family == "noise" else f"{sensor}_{kind}"
         out.append({"block": name, "sensor": str(sensor), "kind": kind,
                     "chi2": c2, "dof": dof, "chi2_per_dof": c2 / dof if dof else None, "rows": len(m)})
-    return out
+    return cells(rs, groups), out
 
 
 def _json_edge(x: float) -> float | None:
