@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import scipy.sparse as sp
+from scipy.linalg import cholesky, solve_triangular
 
+from imupipe.errors import SolverError
 from imupipe.solvers.blocktri import BlockTridiagonal, Bordered, _gram, solve_least_squares
 
 
@@ -41,6 +44,33 @@ def test_block_tridiagonal_solve_and_selected_inverse_match_dense():
     assert mask.sum() > 0
     assert np.allclose(Z[mask], Zd[mask], rtol=1e-9, atol=1e-12)
     assert np.isclose(bt.logdet(), np.linalg.slogdet(A)[1])
+
+
+def test_blocks_and_factors_are_scipys_to_the_bit():
+    """The blocks are written in at once and the factors come from LAPACK directly: the same bits
+    as slicing block by block and scipy's cholesky / solve_triangular, duplicates summed first."""
+    rng = np.random.default_rng(3)
+    _, J_l, offsets = _chain(rng, [3, 0, 4, 2, 5])
+    A = sp.csr_matrix(J_l.T @ J_l + sp.eye(J_l.shape[1]) * 0.1)
+    rows = [np.r_[a, a] for a in np.split(np.arange(A.nnz), A.indptr[1:-1])]  # every entry in two halves
+    twice = sp.csr_matrix((0.5 * A.data[np.concatenate(rows)], A.indices[np.concatenate(rows)],
+                           np.r_[0, np.cumsum([len(r) for r in rows])]), shape=A.shape)
+    assert not twice.has_canonical_format
+    bt = BlockTridiagonal.from_sparse(twice, offsets)
+    o, Ad = offsets, A.toarray()
+    for i in range(len(o) - 1):
+        assert np.array_equal(bt.diag[i], Ad[o[i]:o[i + 1], o[i]:o[i + 1]])
+    for i in range(len(o) - 2):
+        assert np.array_equal(bt.lower[i], Ad[o[i + 1]:o[i + 2], o[i]:o[i + 1]])
+    D0, E0 = bt.diag[0].copy(), bt.lower[0].copy()
+    bt.factor()
+    C0 = cholesky(D0, lower=True)
+    assert np.array_equal(bt._C[0], C0)
+    assert np.array_equal(bt._G[0], solve_triangular(C0, E0.T, lower=True).T)
+    with pytest.raises(SolverError, match="stage 0"):
+        BlockTridiagonal([-np.eye(2)], []).factor()
+    with pytest.raises(ValueError, match="NaN"):
+        BlockTridiagonal([np.full((2, 2), np.nan)], []).factor()
 
 
 def test_bordered_covariance_and_leverage_match_dense():
