@@ -264,34 +264,49 @@ def pad_turns(t: Sequence[np.ndarray], rate: Sequence[np.ndarray],
     return w_pad, dt_pad
 
 
-def _turn_products(rate: np.ndarray, dt: np.ndarray) -> np.ndarray:
-    """(m, 4) ``compose(quat_exp(rate * dt))`` of padded turns, by groups of turns within a
-    factor two in length: each group stops at its longest turn, so a few long turns (a
-    turntable's) do not make every short one integrate their padding. Padding is an exact
-    identity factor, so the products are those of the whole padded arrays."""
-    m, k = dt.shape
-    length = np.where(dt.any(axis=1), k - np.argmax(dt[:, ::-1] != 0, axis=1), 1)
+TURN_CHUNK = 64  # turns integrated at once: a long recording's corrected rates are never all formed
+
+
+def _turn_products(rate: np.ndarray, dt: np.ndarray, M: np.ndarray | None = None,
+                   turns: np.ndarray | None = None) -> np.ndarray:
+    """(m, 4) ``compose(quat_exp((rate @ M.T) * dt))`` of padded turns (``turns``: those alone,
+    in that order), by groups of turns within a factor two in length: each group stops at its
+    longest turn, so a few long turns (a turntable's) do not make every short one integrate
+    their padding. Padding is an exact identity factor, so the products are those of the whole
+    padded arrays. ``TURN_CHUNK`` turns at a time: no copy of the (selected, corrected) rates."""
+    turns = np.arange(len(dt)) if turns is None else np.asarray(turns, dtype=np.int64)
+    k = dt.shape[1]
+    length = np.ones(len(turns), np.int64)
+    for a in range(0, len(turns), TURN_CHUNK):
+        d = dt[turns[a:a + TURN_CHUNK]]
+        length[a:a + TURN_CHUNK] = np.where(d.any(axis=1), k - np.argmax(d[:, ::-1] != 0, axis=1), 1)
     group = np.ceil(np.log2(length)).astype(int)
-    out = np.empty((m, 4))
+    out = np.empty((len(turns), 4))
     for g in np.unique(group):
-        idx = np.flatnonzero(group == g)
-        n = int(length[idx].max())
-        out[idx] = compose(quat_exp(rate[idx, :n] * dt[idx, :n, None]))
+        pos = np.flatnonzero(group == g)
+        n = int(length[pos].max())
+        for a in range(0, len(pos), TURN_CHUNK):
+            p = pos[a:a + TURN_CHUNK]
+            w = rate[turns[p], :n] if M is None else rate[turns[p], :n] @ M.T
+            out[p] = compose(quat_exp(w * dt[turns[p], :n, None]))
     return out
 
 
-def turn_quaternions(rate: np.ndarray, dt: np.ndarray) -> np.ndarray:
+def turn_quaternions(rate: np.ndarray, dt: np.ndarray, M: np.ndarray | None = None,
+                     turns: np.ndarray | None = None) -> np.ndarray:
     """Unit quaternions (m, 4) of padded turns: ``rate`` (m, k, 3) rad/s, ``dt`` (m, k) s.
 
-    ``rate`` is already corrected (bias removed, scale/misalignment applied).
+    ``rate`` is already corrected (bias removed), then by ``M`` when given (``rate @ M.T``);
+    ``turns``: those turns alone.
     """
-    q = _turn_products(rate, dt)
+    q = _turn_products(rate, dt, M, turns)
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
-def turn_rotations(rate: np.ndarray, dt: np.ndarray) -> np.ndarray:
+def turn_rotations(rate: np.ndarray, dt: np.ndarray, M: np.ndarray | None = None,
+                   turns: np.ndarray | None = None) -> np.ndarray:
     """Rotation matrices (m, 3, 3) of padded turns, as ``turn_quaternions``."""
-    return quat_to_matrix(_turn_products(rate, dt))  # normalises once
+    return quat_to_matrix(_turn_products(rate, dt, M, turns))  # normalises once
 
 
 def carry(R: np.ndarray, v: np.ndarray) -> np.ndarray:

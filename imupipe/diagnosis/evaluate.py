@@ -141,16 +141,17 @@ def _overlaps(a0: np.ndarray, a1: np.ndarray, windows: list[tuple[float, float]]
     return hit
 
 
-def displacement(model: JointModel, x_g: np.ndarray, x_l: np.ndarray) -> np.ndarray:
+def displacement(model: JointModel, lin: Linearised) -> np.ndarray:
     """(m,) m: how far each motion's unexplained acceleration carries the unit (start frame,
-    integrated twice from rest), from the per-sample residuals at ``x_g``/``x_l`` (the start:
+    integrated twice from rest), from the per-sample residuals of the fit ``lin`` (a first one:
     the attitude the gyro integrates from the rest before, good for seconds)."""
     acc = model.accel
     out = np.zeros(model.m)
     if not len(acc.t):
         return out
-    P = model.unpack(x_g)
-    r = model.residuals(x_g, x_l, jacobian=False)[0][model.rows.of("accel_motion")].reshape(-1, 3)
+    x_l = lin.x_l
+    P = model.unpack(lin.x_g)
+    r = lin.r[model.rows.of("accel_motion")].reshape(-1, 3)
     e = np.linalg.solve(model.W_sample, r.T).T  # raw residual
     a_body = e @ np.linalg.inv(P["S_a"]).T  # m/s^2, instrument axes
     omega, _ = model._rates(P, x_l, derivatives=False)
@@ -219,7 +220,7 @@ def evaluate(streams: Mapping[str, tuple[np.ndarray, np.ndarray]], rests: Rests,
     # integrated over a 20 s turntable turn, would pass for metres of travel), then the carries
     # are found and the final fit starts from it
     first = fit(model, max_iter=SCREEN_ITER, fixed_globals=True, tol=FIT_TOL, leverage=False)
-    moved = displacement(model, first.x_g, first.x_l)
+    moved = displacement(model, first)
     carried = moved > TRANSLATION_M
     for j in np.flatnonzero(carried):
         events.append(Event("translation", "accel", (float(t0[keep[j]]), float(t1[keep[j]])),

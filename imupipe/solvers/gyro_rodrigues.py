@@ -84,18 +84,20 @@ def take(rates: Rates, index) -> Rates:
     return rates[0][index], rates[1][index]
 
 
-def rotations_of(rates: Rates, M: np.ndarray, exact: bool) -> np.ndarray:
-    """Rotation vectors (m, 3) rad of the corrected rates ``w @ M.T`` of each motion:
-    integrated as rotations (exact) or summed as in eq. (29)."""
+def rotations_of(rates: Rates, M: np.ndarray, exact: bool, turns=None) -> np.ndarray:
+    """Rotation vectors (m, 3) rad of the corrected rates ``w @ M.T`` of each motion (``turns``:
+    those alone): integrated as rotations (exact) or summed as in eq. (29)."""
     rate, dt = rates
     if exact:
-        return quat_to_rotvec(turn_quaternions(rate @ M.T, dt))
+        return quat_to_rotvec(turn_quaternions(rate, dt, M, turns))
+    if turns is not None:
+        rate, dt = take(rates, turns)
     return np.einsum("mk,mki->mi", dt, rate @ M.T)
 
 
-def carried_gravity(rates: Rates, M: np.ndarray, g0: np.ndarray) -> np.ndarray:
-    """(m, 3) gravity before each turn carried through the turn by the corrected rates."""
-    return carry(turn_rotations(rates[0] @ M.T, rates[1]), g0)
+def carried_gravity(rates: Rates, M: np.ndarray, g0: np.ndarray, turns=None) -> np.ndarray:
+    """(m, 3) gravity before each turn (of ``turns``) carried through it by the corrected rates."""
+    return carry(turn_rotations(*rates, M, turns), g0)
 
 
 def bias_of_turns(obs: GyroObservations, turns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -150,20 +152,19 @@ class GyroRodrigues:
             )
         rates = turn_rates(obs)
         unit = rate_unit(take(rates, use), np.radians(tilt[use]))
-        rates = (rates[0] * unit, rates[1])  # solved in ~rad/s; M returned per raw unit
+        rates[0][...] *= unit  # solved in ~rad/s; M returned per raw unit
         C = np.cross(g0, g1)
         C /= np.linalg.norm(C, axis=1, keepdims=True).clip(1e-300)
         S = (g0 + g1) / np.linalg.norm(g0 + g1, axis=1, keepdims=True).clip(1e-300)
         Gs = np.einsum("ki,kj->kij", C, C) + np.einsum("ki,kj->kij", S, S) - np.eye(3)  # Eq. (31)
 
-        used = take(rates, use)
         Gu = Gs[use]
 
         def step(M: np.ndarray, beta: float | None):
             """One pass: LS of eq. (36) with Y~ from the current M, then the scale (eq. 37)."""
             # Y~ such that M Y~ is the rotation of the corrected rates (eq. 29 when small-angle)
-            Yts = rotations_of(used, M, True) @ np.linalg.inv(M).T if params.exact_rotation \
-                else rotations_of(used, np.eye(3), False)
+            Yts = rotations_of(rates, M, True, use) @ np.linalg.inv(M).T if params.exact_rotation \
+                else rotations_of(rates, np.eye(3), False, use)
             rows = [design(G, Yt / max(np.linalg.norm(Yt), 1e-12)) for G, Yt in zip(Gu, Yts, strict=True)]
             H, Z = np.vstack([r[0] for r in rows]), np.concatenate([r[1] for r in rows])
             m, *_ = np.linalg.lstsq(H, Z, rcond=None)  # Eq. (36)
@@ -209,7 +210,7 @@ class GyroRodrigues:
             "converged": converged,
             "scale_from": "roll turn (eq. 37)" if obs.roll_turn is not None else "all turns",
             "max_turn_deg": float(np.degrees(np.linalg.norm(
-                rotations_of(used, M, True), axis=1)).max()),
+                rotations_of(rates, M, True, use), axis=1)).max()),
         }
         cov[:9, :9] *= unit**2
         details["rate_unit"] = unit
@@ -225,7 +226,7 @@ class GyroRodrigues:
         exact = params.exact_rotation
         sel = [obs.roll_turn] if obs.roll_turn is not None else list(use)
         if obs.roll_turn is not None or not exact or beta_prev is None:
-            phis = rotations_of(take(rates, sel), M_hat, True)
+            phis = rotations_of(rates, M_hat, True, sel)
         if obs.roll_turn is None and not exact:
             small = np.degrees(np.linalg.norm(phis, axis=1)) <= params.max_scale_turn_deg
             if small.sum() < 1:
@@ -233,7 +234,6 @@ class GyroRodrigues:
                                   "scale; give the roll turn (eq. 37) or record small turns")
             sel = [j for j, keep in zip(sel, small, strict=True) if keep]
             phis = phis[small]
-        chosen = take(rates, sel)
         if obs.roll_turn is not None and (beta_prev is None or not exact):
             d_gamma = np.arccos(np.clip(g0[sel[0]] @ g1[sel[0]], -1, 1))
             beta = float(d_gamma / np.linalg.norm(phis[0]))  # Eq. (37)
@@ -253,7 +253,7 @@ class GyroRodrigues:
         def resid(b: float) -> np.ndarray:
             # gravity before, carried by the scaled rates as a finite rotation, vs gravity after:
             # Rodrigues' relation without tan(chi/2), well-conditioned at any turn angle
-            return (carried_gravity(chosen, b * M_hat, g0[sel]) - g1[sel]).ravel()
+            return (carried_gravity(rates, b * M_hat, g0[sel], sel) - g1[sel]).ravel()
 
         for _ in range(2 if beta_prev is not None else 4):
             r0 = resid(beta)
@@ -290,14 +290,13 @@ class GyroRodrigues:
         residuals (the gravity carried through the scale turns, exact; eq. 38 small-angle)
         given m, so it inherits m's uncertainty through d beta / d m plus its own.
         """
-        chosen = take(rates, sel)
         a, b = g0[sel], g1[sel]
 
         def scale_resid(x: np.ndarray) -> np.ndarray:
             Mx = x[8] * np.array([[1.0, x[0], x[1]], [x[2], x[3], x[4]], [x[5], x[6], x[7]]])
             if exact_scale:
-                return (carried_gravity(chosen, Mx, a) - b).ravel()
-            phis = rotations_of(chosen, Mx, False)
+                return (carried_gravity(rates, Mx, a, sel) - b).ravel()
+            phis = rotations_of(rates, Mx, False, sel)
             return ((b - a) + np.cross(0.5 * phis, a + b)).ravel()  # Eq. (38)
 
         x0 = np.append(m, beta)
