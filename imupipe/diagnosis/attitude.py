@@ -33,7 +33,7 @@ from ..rotations import quat_exp, quat_mul_into, quat_to_matrix, skew
 _SMALL = 1e-4
 # steps (or instants) whose attitude quantities are formed at once: temporaries of a few MiB, which the
 # allocator reuses, where whole-recording ones are fresh pages the kernel clears every time
-STEP_CHUNK = 1 << 14
+STEP_CHUNK = 1 << 12
 _PATTERN_PROBE = 256  # rows of local nodes that tell whether their patterns repeat
 
 

@@ -439,14 +439,13 @@ class JointModel:
         if len(self.quad.step):
             R[self.quad.step] = att.R_before
             R[self.quad.step[self.quad.last] + 1] = att.total[self.quad.seg[self.quad.last]]
-        Phi_s = wq[:, None, None] ** 2 * (R @ Sg @ np.swapaxes(R, 1, 2))
         out = []
         qg = float(np.mean(self.q["wg"])) if "wg" in self.walks else 0.0
         for j, sel in enumerate(by_motion(ms.motion, self.m)):
             K = self.K[j]
             k = np.clip(np.searchsorted(self.knot_t[j], ms.t[sel], "right") - 1, 0, K - 1)
-            Phi = np.zeros((K, 3, 3))
-            np.add.at(Phi, k, Phi_s[sel])
+            Phi = np.zeros((K, 3, 3))  # motion by motion: no (N, 3, 3) temporaries
+            np.add.at(Phi, k, wq[sel, None, None] ** 2 * (R[sel] @ Sg @ np.swapaxes(R[sel], 1, 2)))
             T = ms.end[j] - ms.origin[j] if np.isfinite(ms.end[j]) else 0.0
             if qg and T > 0:
                 Phi += qg * T**3 / 12.0 / K * (P["M_g"] @ P["M_g"].T)

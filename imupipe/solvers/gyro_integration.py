@@ -107,7 +107,7 @@ def gravity_residuals(M: np.ndarray, b: np.ndarray, rate: np.ndarray, dt: np.nda
 
     ``rate`` (m, k, 3) raw rad/s, ``dt`` (m, k) s, ``g_*`` (m, 3) unit vectors.
     """
-    return carry(turn_rotations((rate - b) @ M.T, dt), g_before) - g_after
+    return carry(turn_rotations(rate - b, dt, M), g_before) - g_after
 
 
 class GyroIntegration:

@@ -111,9 +111,9 @@ def calibrate_gyro(inputs: Mapping[str, pa.Table], params: GyroParams, solver: B
     # per turn: gravity after vs gravity before carried through the calibrated rotation
     rate, dt = pad_turns(turns.t, turns.gyro, hold_intervals)
     T_turn = model_T(0.5 * (rests.temperature[turns.before] + rests.temperature[turns.after]))
-    rate = (rate - cal.bias(T_turn)[:, None, :]) @ cal.M.T
+    rate -= cal.bias(T_turn)[:, None, :]
     g0, g1 = gravity[turns.before], gravity[turns.after]
-    pred = carry(turn_rotations(rate, dt), g0)
+    pred = carry(turn_rotations(rate, dt, cal.M), g0)
     res_turn = residual_table("calibrate_gyro", "gyro", "turn",
                               np.array([0.5 * (t[0] + t[-1]) for t in turns.t]),
                               np.full(len(turns), np.nan), g1, pred, None)

@@ -24,7 +24,7 @@ saw, for the report's figure and for the message when too few rests are found.
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 
 import numpy as np
 import pyarrow as pa
@@ -75,29 +75,39 @@ def xyz(table: pa.Table) -> tuple[np.ndarray, np.ndarray]:
         [table.column(c).to_numpy() for c in ("x", "y", "z")]).astype(float, copy=False)
 
 
-def _window(t_s: np.ndarray, window_s: float) -> tuple[np.ndarray, np.ndarray]:
-    return np.searchsorted(t_s, t_s - window_s / 2, "left"), np.searchsorted(t_s, t_s + window_s / 2, "right")
-
-
-def _running_sum(v: np.ndarray) -> np.ndarray:
-    """(k + 1, ...) the sums of ``v``'s first 0, 1, ..., k rows."""
-    c = np.empty((len(v) + 1, *v.shape[1:]))
-    c[0] = 0.0
-    np.cumsum(v, axis=0, out=c[1:])
-    return c
+def _window_sums(t_s: np.ndarray, window_s: float, values) -> Iterator[tuple[slice, np.ndarray, np.ndarray]]:
+    """``ROWS`` samples ``r`` at a time: ``(r, n, sums)``, each sample's count ``n`` and the sums
+    of the rows ``values(i, j)`` (rows i..j-1 of a (k, d) array) over [t - w/2, t + w/2]: the
+    differences of running sums formed over the chunk's windows alone, each chunk's continuing
+    the one before from its partial sum (the very additions of one running sum over the whole
+    recording, without one: a long recording's temporaries)."""
+    k = len(t_s)
+    prev = None  # (first index, running sums from it) of the chunk before
+    for a in range(0, k, ROWS):
+        r = slice(a, min(a + ROWS, k))
+        lo = np.searchsorted(t_s, t_s[r] - window_s / 2, "left")
+        hi = np.searchsorted(t_s, t_s[r] + window_s / 2, "right")
+        first, last = int(lo[0]), int(hi[-1])  # first <= a <= the last index of the chunk before's
+        x = values(first, last)
+        c = np.empty((last - first + 1, *x.shape[1:]))
+        if prev is None:
+            c[0] = 0.0
+            np.cumsum(x, axis=0, out=c[1:])
+        else:
+            c[0] = prev[1][first - prev[0]]
+            c[1:] = x
+            np.cumsum(c, axis=0, out=c)
+        prev = (first, c)
+        yield r, hi - lo, c[hi - first] - c[lo - first]
 
 
 def box_mean(t_s: np.ndarray, v: np.ndarray, window_s: float) -> np.ndarray:
-    """(k, 3) mean of ``v`` (k, 3) over [t - w/2, t + w/2] per sample (``v`` itself for w = 0);
-    ``ROWS`` samples at a time past the running sums (a long recording's temporaries)."""
+    """(k, 3) mean of ``v`` (k, 3) over [t - w/2, t + w/2] per sample (``v`` itself for w = 0)."""
     if window_s <= 0:
         return v
-    c = _running_sum(v - v[0])
-    lo, hi = _window(t_s, window_s)
     out = np.empty(v.shape)
-    for a in range(0, len(v), ROWS):
-        r = slice(a, a + ROWS)
-        out[r] = (c[hi[r]] - c[lo[r]]) / (hi[r] - lo[r])[:, None] + v[0]
+    for r, n, sums in _window_sums(t_s, window_s, lambda i, j: v[i:j] - v[0]):
+        out[r] = sums / n[:, None] + v[0]
     return out
 
 
@@ -109,17 +119,16 @@ def lowpass(t_s: np.ndarray, v: np.ndarray, lowpass_s: float) -> np.ndarray:
 def windowed_variance(t_s: np.ndarray, v: np.ndarray, window_s: float, per_axis: bool = False) -> np.ndarray:
     """(k,) trace of the covariance of ``v`` (k, 3) over [t - w/2, t + w/2] per sample
     ((k, 3) the per-axis variances with ``per_axis``)."""
-    v = v - np.median(v, axis=0)  # conditioning of the running sums
-    c1 = _running_sum(v)
-    np.multiply(v, v, out=v)
-    c2 = _running_sum(v)
-    del v
-    lo, hi = _window(t_s, window_s)
+    median = np.median(v, axis=0)  # conditioning of the running sums
+
+    def values(i: int, j: int) -> np.ndarray:
+        x = v[i:j] - median
+        return np.hstack([x, x * x])
+
     out = np.empty((len(t_s), 3) if per_axis else len(t_s))
-    for a in range(0, len(t_s), ROWS):
-        r = slice(a, a + ROWS)
-        n = (hi[r] - lo[r]).astype(float)
-        s1, s2 = c1[hi[r]] - c1[lo[r]], c2[hi[r]] - c2[lo[r]]
+    for r, n, sums in _window_sums(t_s, window_s, values):
+        n = n.astype(float)
+        s1, s2 = sums[:, :3], sums[:, 3:]
         var = np.maximum((s2 - s1 * s1 / n[:, None]) / np.maximum(n - 1, 1)[:, None], 0)
         var[n < 3] = np.inf  # too few samples to call it still
         out[r] = var if per_axis else var.sum(axis=1)
@@ -194,6 +203,7 @@ class Detection:
         self.threshold = {"accel": p.accel_threshold * self.floor["accel"],
                           "gyro": p.gyro_threshold * self.floor["gyro"]}
         self.stat = {"accel": va / self.threshold["accel"], "gyro": vw / self.threshold["gyro"]}
+        del va, vw, sel  # a long recording's arrays: the edge statistics below come on top
         core = (self.stat["accel"] < 1) & (self.stat["gyro"] < 1)
         core[breaks] = False
         self.cores = [r for r in runs(core) if self.segment_id[r[0]] == self.segment_id[r[1]]]
@@ -423,6 +433,7 @@ def segment(inputs: Mapping[str, pa.Table], params: SegmentParams, solver: Bound
     t0 = int(min(t_a[0], t_g[0]))
     ta_s, tg_s = (t_a - t0) * 1e-9, (t_g - t0) * 1e-9
     w_at_a = np.column_stack([np.interp(ta_s, tg_s, w[:, i]) for i in range(3)])
+    del tg_s
     det = Detection(ta_s, a, w_at_a, params)
     runs_ = det.rests()
     if len(runs_) < params.min_rests:

@@ -53,7 +53,8 @@ def turn_errors(rests: Rests, turns: Turns, acc: TriadCalibration | None,
     else:
         M, bias = np.eye(3), 0.5 * (w[turns.before] + w[turns.after])
     rate, dt = pad_turns(turns.t, turns.gyro, hold_intervals)
-    q = turn_quaternions((rate - bias[:, None, :]) @ M.T, dt)
+    rate -= bias[:, None, :]
+    q = turn_quaternions(rate, dt, M)
     q = q * np.where(q[:, :1] < 0, -1.0, 1.0)
     Y = q[:, 1:] / np.where(np.abs(q[:, :1]) > 1e-12, q[:, :1], 1e-12)  # e tan(chi/2)
     g0, g1 = g[turns.before], g[turns.after]

@@ -50,12 +50,18 @@ def test_constant_rate_gives_exact_angle_and_padding_is_neutral():
     np.testing.assert_allclose(R[1], alone[0], atol=1e-15)
 
 
-def test_turns_of_mixed_lengths_are_the_products_of_the_whole_padded_arrays():
+def test_turns_of_mixed_lengths_are_the_products_of_the_whole_padded_arrays(monkeypatch):
     rng = np.random.default_rng(5)
     lengths = [*rng.integers(300, 420, 40), 2000, 1, 0]  # short turns, a turntable's, degenerate ones
     rate, dt = pad_turns([np.arange(n) * 0.01 for n in lengths], [rng.normal(size=(n, 3)) for n in lengths])
     whole = quat_to_matrix(compose(quat_exp(rate * dt[..., None])))
     assert np.array_equal(turn_rotations(rate, dt), whole)  # grouped by length: the same bits
+    # corrected by M and picked by index a few turns at a time: the bits of the whole corrected copy
+    M = np.eye(3) + 0.02 * rng.normal(size=(3, 3))
+    pick = rng.permutation(len(lengths))[:30]
+    corrected = quat_to_matrix(compose(quat_exp((rate @ M.T)[pick] * dt[pick][..., None])))
+    monkeypatch.setattr("imupipe.rotations.TURN_CHUNK", 7)
+    assert np.array_equal(turn_rotations(rate, dt, M, pick), corrected)
 
 
 def test_quat_exp_small_angles_match_series():

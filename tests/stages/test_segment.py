@@ -191,3 +191,30 @@ def test_a_gap_inside_a_hold_splits_it_and_no_edge_crosses_it(short_holds):
     assert not np.any((start < gap[0]) & (end > gap[1]))
     before, after = np.flatnonzero(end <= gap[0])[-1], np.flatnonzero(start >= gap[1])[0]
     assert gap[0] - end[before] < 0.05 and start[after] - gap[1] < 0.05  # each side keeps its samples
+
+
+def test_windowed_statistics_by_chunks_are_one_running_sum_to_the_bit(monkeypatch):
+    """Box means and windowed variances come ROWS samples at a time, each chunk's running sums
+    continuing the last: the same bits as one running sum over the whole recording (irregular
+    times, a gap, windows across the chunks' edges)."""
+    rng = np.random.default_rng(2)
+    t = np.cumsum(rng.uniform(0.005, 0.015, 3000))
+    t[1700:] += 3.0  # a gap
+    v = rng.normal(size=(3000, 3)) * [1.0, 10.0, 0.1] + [9.8, -3.0, 1e3]
+
+    def reference(x, w):
+        c = np.zeros((len(x) + 1, 3))
+        np.cumsum(x, axis=0, out=c[1:])
+        lo, hi = np.searchsorted(t, t - w / 2, "left"), np.searchsorted(t, t + w / 2, "right")
+        return c[hi] - c[lo], hi - lo
+
+    s, n = reference(v - v[0], 0.25)
+    mean = s / n[:, None] + v[0]
+    d = v - np.median(v, axis=0)
+    (s1, n), (s2, _) = reference(d, 0.5), reference(d * d, 0.5)
+    var = np.maximum((s2 - s1 * s1 / n[:, None]) / np.maximum(n - 1, 1)[:, None], 0)
+    var[n < 3] = np.inf
+    monkeypatch.setattr(segment, "ROWS", 97)
+    assert np.array_equal(segment.box_mean(t, v, 0.25), mean)
+    assert np.array_equal(segment.windowed_variance(t, v, 0.5, per_axis=True), var)
+    assert np.array_equal(segment.windowed_variance(t, v, 0.5), var.sum(axis=1))
