@@ -435,17 +435,21 @@ class JointModel:
         # sample s's white noise turns the attitude by its quadrature weight times the rate error,
         # in the frame of the attitude at the sample
         wq = np.asarray(self.quad.A.sum(axis=0)).ravel() if len(ms) else np.zeros(0)
-        R = np.tile(np.eye(3), (len(ms), 1, 1))
-        if len(self.quad.step):
-            R[self.quad.step] = att.R_before
-            R[self.quad.step[self.quad.last] + 1] = att.total[self.quad.seg[self.quad.last]]
+        step, steps = self.quad.step, by_motion(self.quad.seg, self.m)
         out = []
         qg = float(np.mean(self.q["wg"])) if "wg" in self.walks else 0.0
         for j, sel in enumerate(by_motion(ms.motion, self.m)):
             K = self.K[j]
             k = np.clip(np.searchsorted(self.knot_t[j], ms.t[sel], "right") - 1, 0, K - 1)
-            Phi = np.zeros((K, 3, 3))  # motion by motion: no (N, 3, 3) temporaries
-            np.add.at(Phi, k, wq[sel, None, None] ** 2 * (R[sel] @ Sg @ np.swapaxes(R[sel], 1, 2)))
+            # each sample's attitude: before its step, the motion's whole turn at its last sample
+            # (motion by motion: no (N, 3, 3) arrays)
+            R = np.tile(np.eye(3), (sel.stop - sel.start, 1, 1))
+            s = steps[j]
+            if s.stop > s.start:
+                R[step[s] - sel.start] = att.R_before[s]
+                R[step[s.stop - 1] + 1 - sel.start] = att.total[j]
+            Phi = np.zeros((K, 3, 3))
+            np.add.at(Phi, k, wq[sel, None, None] ** 2 * (R @ Sg @ np.swapaxes(R, 1, 2)))
             T = ms.end[j] - ms.origin[j] if np.isfinite(ms.end[j]) else 0.0
             if qg and T > 0:
                 Phi += qg * T**3 / 12.0 / K * (P["M_g"] @ P["M_g"].T)
