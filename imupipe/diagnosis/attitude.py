@@ -22,6 +22,7 @@ start frame (``P_s`` the rotation before step ``s``, ``J_l`` the left Jacobian o
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -326,21 +327,27 @@ class Attitude:
         cum = (into if into is not None and into.shape == shape else np.empty(shape)) if before else None
         last = np.empty((len(quad.last), 3, P))
         for lo, hi in quad.ranges:
-            per, run = self._per_step(D, lo, hi)
             ends = slice(*np.searchsorted(quad.last, [lo, hi]))
-            last[ends] = run[quad.last[ends] - lo]
             if before:
+                per, run = self._per_step(D, lo, hi)
+                last[ends] = run[quad.last[ends] - lo]
                 np.subtract(run, per, out=cum[lo:hi])
+            else:  # the totals alone: each motion's sum, in the running sum's order (the same bits)
+                per = self._per_step(D, lo, hi, running=False)[0]
+                bounds = _run_bounds(quad.seg[lo:hi])
+                last[ends] = [per[a:b].sum(axis=0) for a, b in itertools.pairwise(bounds)]
         if before:
             object.__setattr__(self, "_memo", (D, cum, last))
         return cum, last
 
-    def _per_step(self, D: np.ndarray, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+    def _per_step(self, D: np.ndarray, lo: int, hi: int, running: bool = True
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
         """Steps ``lo`` to ``hi`` (whole motions): each one's start-frame attitude change per unit
-        parameter change (hi - lo, 3, P) and their running sums within each motion."""
+        parameter change (hi - lo, 3, P) and their running sums within each motion (``running``;
+        else None)."""
         s = slice(lo, hi)
         per = (self.R_before[s] @ left_jacobian(self.a[s])) @ weighted(self.quad.A[s], D)
-        return per, segmented_cumsum(per, self.quad.seg[s])
+        return per, segmented_cumsum(per, self.quad.seg[s]) if running else None
 
     def sensitivity(self, D: np.ndarray, pts: Points) -> np.ndarray:
         """(k, 3, P) start-frame attitude change per unit change of parameters at the instants

@@ -208,7 +208,7 @@ def test_sensitivity_without_kept_sums_forms_them_over_its_instants_motions_alon
     """Without the sums ``end_sensitivity(before=True)`` keeps (a term's columns, at the map's
     peak), ``sensitivity`` forms them over the whole motions holding its instants: the same bits,
     for chunks of instants that start or end inside a motion, and instants of a motion
-    without steps."""
+    without steps; the end totals alone (each motion's sum) are the running sums' last ones."""
     rng = np.random.default_rng(5)
     t, y = _motions(rng, m=6)
     t[3], y[3] = t[3][:1], y[3][:1]  # a motion of one sample: no step
