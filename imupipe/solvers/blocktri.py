@@ -38,7 +38,8 @@ MIN_STRETCH = ROW_CHUNK
 HOPEFUL = 1e-6  # a step that cut the cost by more (relative) leaves its successor likely taken
 
 
-def _finite(a: np.ndarray) -> np.ndarray:
+def finite(a: np.ndarray) -> np.ndarray:
+    """``a``, checked as scipy.linalg checks what it hands LAPACK."""
     if not np.isfinite(a).all():
         raise ValueError("array must not contain infs or NaNs")
     return a
@@ -48,9 +49,9 @@ def _lower_solve(C: np.ndarray, b: np.ndarray, trans: int = 0) -> np.ndarray:
     """``solve_triangular(C, b, lower=True, trans=trans)``'s very arithmetic, called on LAPACK
     directly: the stages' blocks are small, and scipy's checks cost 5x the solve itself."""
     if C.flags.f_contiguous:
-        x, info = dtrtrs(C, _finite(b), lower=1, trans=trans)
+        x, info = dtrtrs(C, finite(b), lower=1, trans=trans)
     else:  # as scipy: the transposed system (trtrs expects Fortran order)
-        x, info = dtrtrs(C.T, _finite(b), lower=0, trans=1 - trans)
+        x, info = dtrtrs(C.T, finite(b), lower=0, trans=1 - trans)
     if info:
         raise np.linalg.LinAlgError(f"singular matrix: resolution failed at diagonal {info - 1}")
     return x
@@ -115,7 +116,7 @@ class BlockTridiagonal:
         for i in range(n):
             diag[i] = None
             if S.shape[0]:
-                Ci, info = dpotrf(_finite(S), lower=1, clean=1)
+                Ci, info = dpotrf(finite(S), lower=1, clean=1)
                 if info:
                     raise SolverError("the nuisance parameters are not determined by the data "
                                       f"(stage {i} of {n})")

@@ -23,7 +23,9 @@ walk's level (e.g. centred on the session).
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import cho_solve_banded, cholesky_banded
+from scipy.linalg.lapack import dpbtrf, dpbtrs
+
+from .blocktri import finite
 
 _GRID = np.linspace(-4.0, 10.0, 15)  # log10 of q L / (median white variance of a mean)
 _NU_GRID = np.linspace(-1.0, 5.0, 7)  # log10 of the extra rest scatter / the same
@@ -97,10 +99,11 @@ def _apply_Ht(H: np.ndarray, ia: np.ndarray, ib: np.ndarray, y: np.ndarray, k: i
 
 
 def reml_cost(q: float, t_start: np.ndarray, t_end: np.ndarray, r: np.ndarray, var: np.ndarray,
-              X: np.ndarray, H: np.ndarray | None = None) -> float:
+              X: np.ndarray, H: np.ndarray | None = None, bounds: tuple | None = None) -> float:
     """-2 log restricted likelihood (up to a constant) of interval averages ``r`` (n,) with
     white variances ``var`` (n,), a walk of intensity ``q`` projected by ``H`` (n, D) (default
-    1-D), and the regressors ``X`` (n, p) profiled out. ``q = 0``: white noise only."""
+    1-D), and the regressors ``X`` (n, p) profiled out. ``q = 0``: white noise only.
+    ``bounds``: ``boundaries(t_start, t_end)``, when the caller has them."""
     n = len(r)
     H = np.ones((n, 1)) if H is None else np.asarray(H, float)
     length = t_end - t_start
@@ -111,16 +114,21 @@ def reml_cost(q: float, t_start: np.ndarray, t_end: np.ndarray, r: np.ndarray, v
         VA = A * Dinv[:, None]
         logdet_V = float(np.log(dvar).sum())
     else:
-        times, ia, ib = boundaries(t_start, t_end)
+        times, ia, ib = boundaries(t_start, t_end) if bounds is None else bounds
         Dd = H.shape[1]
         ab, _ = _precision(times, ia, ib, H, dvar, q)
-        try:
-            cb = cholesky_banded(ab, lower=True)
-        except np.linalg.LinAlgError:
+        # scipy's cholesky_banded and cho_solve_banded, called on LAPACK directly: a walk's
+        # intensity takes hundreds of these small solves, and scipy's checks cost as much
+        cb, info = dpbtrf(finite(ab), lower=1)
+        if info > 0:  # not positive definite
             return np.inf
+        if info < 0:
+            raise ValueError(f"pbtrf: illegal argument {-info}")
         k = len(times) - 1
         HtDA = _apply_Ht(H, ia, ib, A * Dinv[:, None], k)
-        Z = cho_solve_banded((cb, True), HtDA)
+        Z, info = dpbtrs(cb, finite(HtDA), lower=1)
+        if info:
+            raise ValueError(f"pbtrs: illegal argument {-info}")
         VA = A * Dinv[:, None] - _apply_H(H, ia, ib, Z, Dd) * Dinv[:, None]
         # log|V| = log|D| + log|M| + log|q Lambda^-1| ; |Lambda^-1| = prod(dt) per dim
         logdet_V = float(np.log(dvar).sum() + 2 * np.log(cb[0]).sum()
@@ -154,8 +162,10 @@ def estimate_intensity(t_start: np.ndarray, t_end: np.ndarray, resid: np.ndarray
     U, sv, _ = np.linalg.svd(X, full_matrices=False)
     X = U[:, sv > 1e-8 * sv[0]]  # the same column space, without collinear regressors
 
+    bounds = boundaries(t_start, t_end)
+
     def cost(q: float, nu: float) -> float:
-        return sum(reml_cost(q, t_start, t_end, resid[:, a], var[:, a] + nu, X, H)
+        return sum(reml_cost(q, t_start, t_end, resid[:, a], var[:, a] + nu, X, H, bounds)
                    for a in range(resid.shape[1]))
 
     v0 = float(np.median(var))
