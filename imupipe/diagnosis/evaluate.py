@@ -310,7 +310,7 @@ def sample_table(model: JointModel, lin: Linearised, streams, rests: Rests, Q: n
     L = {"accel": np.linalg.cholesky(model.noise.accel_sample),
          "gyro": np.linalg.cholesky(model.noise.gyro_sample)}
     omega_all, _ = model._rates(P, lin.x_l, derivatives=False)
-    _, _, _, sig = model.residuals(lin.x_g, lin.x_l, signals=True, jacobian=False)
+    u_motion = lin.gravity()[1]
     for sensor in ("accel", "gyro"):
         t, y = streams[sensor]
         n = len(t)
@@ -335,7 +335,7 @@ def sample_table(model: JointModel, lin: Linearised, streams, rests: Rests, Q: n
             r_m = lin.r[lin.rows.of("accel_motion")].reshape(-1, 3)
             pred[idx] = model.accel.y - np.linalg.solve(model.W_sample, r_m.T).T
             whit[idx] = r_m
-            grav[idx] = sig["gravity_motion"] @ Q
+            grav[idx] = u_motion @ Q
         w_norm, a_norm = _motion_rates(model, omega_all, Q, t)
         parts.append(pa.table({
             "sensor": pa.repeat(sensor, n), "t_s": t, "t_on_s": t - _last_power_on(t, power_times, t_all),

@@ -37,6 +37,7 @@ class Linearised:
     converged: bool
     leverage: np.ndarray = field(repr=False, default=None)  # type: ignore[assignment]
     _system: Bordered | None = field(repr=False, default=None)
+    _gravity: tuple | None = field(repr=False, default=None)
 
     @property
     def system(self) -> Bordered:
@@ -47,6 +48,15 @@ class Linearised:
         if self._system is None:
             self._system = Bordered(self.J_g, self.J_l, self.model.stages.offsets)
         return self._system
+
+    def gravity(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """Gravity's direction (model frame) at the rests (n, 3) and at the motions'
+        accelerometer samples (k, 3; None without them), at the solution: one residual-only
+        evaluation, kept for the candidates' signals and the per-sample table."""
+        if self._gravity is None:
+            sig = self.model.residuals(self.x_g, self.x_l, signals=True, jacobian=False)[3]
+            self._gravity = (sig["gravity_rest"], sig.get("gravity_motion"))
+        return self._gravity
 
     def forget_jacobians(self) -> None:
         """Drop the Jacobians and the normal equations (the largest arrays of a long recording)

@@ -164,9 +164,9 @@ class Signals:
         self.lin, self.model = lin, model
         P = model.unpack(lin.x_g)
         self.S_a = P["S_a"]
-        sig = model.residuals(lin.x_g, lin.x_l, signals=True, jacobian=False)[3]
+        u, u_motion = lin.gravity()
         g = model.g
-        self.f_rest = g * sig["gravity_rest"]  # (n, 3) model frame
+        self.f_rest = g * u  # (n, 3) model frame
         self.T_rest = model.dT + T_REF_C
         self.rows_a, self.rows_g = _rows3(lin, "accel_rest"), _rows3(lin, "gyro_rest")
         self.W_a, self.W_g = model.W_a, model.W_g
@@ -186,7 +186,6 @@ class Signals:
         self.t_on_motion = since_on(acc.t)
         self.T_gyro_motion = model.dT_gyro + T_REF_C
         self.t_on_gyro_motion = since_on(ms.t)
-        u = sig["gravity_rest"]
         # gravity at the gyro's samples: the accel samples' path, or the rests' directions across a
         # motion without samples
         u_g = np.zeros((len(ms.t), 3))
@@ -196,7 +195,7 @@ class Signals:
                 continue
             sa = acc_of[j]
             if sa.stop - sa.start >= 2:
-                u_g[sel] = np.column_stack([np.interp(ms.t[sel], acc.t[sa], sig["gravity_motion"][sa, i])
+                u_g[sel] = np.column_stack([np.interp(ms.t[sel], acc.t[sa], u_motion[sa, i])
                                             for i in range(3)])
             else:
                 span = max(ms.end[j] - ms.origin[j], 1e-12)
@@ -213,7 +212,7 @@ class Signals:
         self.T_rate_motion = temperature_rate(curve, acc.t)
         self.T_rate_gyro_motion = temperature_rate(curve, ms.t)
         if self.has_motion:
-            self.f_motion = g * sig["gravity_motion"]
+            self.f_motion = g * u_motion
             self.omega = np.zeros((len(acc.t), 3))
             self.alpha = np.zeros((len(acc.t), 3))
             self.f_dot = np.zeros((len(acc.t), 3))

@@ -1,8 +1,8 @@
 """The residual engine's cheap paths give the numbers of the plain ones: the residual without its
 Jacobian, the factored rate derivatives, J_l from its cached sparsity and from entries placed by
 chunks, the fixed-globals fit's Jacobian, the Jacobians written over old ones, the reused
-quadrature, the map with its Jacobians dropped early, its cells' bookkeeping (issue 13: results
-identical within 1e-9)."""
+quadrature, the map with its Jacobians dropped early, its cells' bookkeeping, the fit's gravity
+read once (issue 13: results identical within 1e-9)."""
 
 from __future__ import annotations
 
@@ -114,6 +114,17 @@ def test_fixed_globals_fit_returns_the_jacobian_at_its_optimum(model):
     r0, J_g0, J_l0 = m.residuals(lin.x_g, lin.x_l, with_globals=False)
     assert J_g0.shape == (len(r), 0) and np.array_equal(r0, r)
     assert np.allclose(J_l0.toarray(), J_l.toarray(), rtol=1e-12, atol=1e-12 * np.abs(J_l.data).max())
+
+
+def test_the_fits_gravity_is_evaluated_once_for_the_signals_and_the_sample_table(model, monkeypatch):
+    m, _ = model
+    lin = fit(m, max_iter=2, fixed_globals=True, leverage=False)
+    sig = m.residuals(lin.x_g, lin.x_l, signals=True, jacobian=False)[3]
+    calls = []
+    monkeypatch.setattr(m, "residuals", lambda *a, **k: calls.append(k) or JointModel.residuals(m, *a, **k))
+    u_rest, u_motion = lin.gravity()
+    assert lin.gravity()[1] is u_motion and len(calls) == 1
+    assert np.array_equal(u_rest, sig["gravity_rest"]) and np.array_equal(u_motion, sig["gravity_motion"])
 
 
 def test_a_model_reusing_anothers_quadrature_is_the_same_model(model):
