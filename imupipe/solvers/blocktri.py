@@ -46,12 +46,10 @@ def finite(a: np.ndarray) -> np.ndarray:
 
 
 def _lower_solve(C: np.ndarray, b: np.ndarray, trans: int = 0) -> np.ndarray:
-    """``solve_triangular(C, b, lower=True, trans=trans)``'s very arithmetic, called on LAPACK
-    directly: the stages' blocks are small, and scipy's checks cost 5x the solve itself."""
-    if C.flags.f_contiguous:
-        x, info = dtrtrs(C, finite(b), lower=1, trans=trans)
-    else:  # as scipy: the transposed system (trtrs expects Fortran order)
-        x, info = dtrtrs(C.T, finite(b), lower=0, trans=1 - trans)
+    """``solve_triangular(C, b, lower=True, trans=trans)`` for a ``dpotrf`` factor ``C`` (Fortran
+    order, as scipy then calls LAPACK: the same arithmetic), called on LAPACK directly: the
+    stages' blocks are small, and scipy's checks cost 5x the solve itself."""
+    x, info = dtrtrs(C, finite(b), lower=1, trans=trans)
     if info:
         raise np.linalg.LinAlgError(f"singular matrix: resolution failed at diagonal {info - 1}")
     return x
