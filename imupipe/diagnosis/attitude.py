@@ -272,31 +272,38 @@ class Quadrature:
 class Attitude:
     """Integrated rotations of every motion under calibrated rates ``omega`` (N, 3) rad/s.
 
-    ``a`` (S, 3) the steps' rotation vectors, ``R_before`` (S, 3, 3) the rotation (body at the
-    step's start -> body at the motion's start) before each step, ``total`` (m, 3, 3) each
-    motion's rotation at its last sample (identity for motions of fewer than two samples).
+    ``a`` (S, 3) the steps' rotation vectors, ``q_before`` (S, 4) the rotation (body at the
+    step's start -> body at the motion's start) before each step as a quaternion (its matrices,
+    ``rotations_before``, are formed where used: 9 numbers a step held through a fit instead of
+    4), ``total`` (m, 3, 3) each motion's rotation at its last sample (identity for motions of
+    fewer than two samples).
     """
 
     quad: Quadrature
     omega: np.ndarray
     a: np.ndarray
-    R_before: np.ndarray
+    q_before: np.ndarray
     total: np.ndarray
 
     @classmethod
     def integrate(cls, quad: Quadrature, omega: np.ndarray) -> Attitude:
         a = quad.A @ omega if len(quad.step) else np.zeros((0, 3))
         seg = quad.seg
-        R_before = np.empty((len(a), 3, 3))
+        q_before = np.empty((len(a), 4))
         total = np.tile(np.eye(3), (quad.samples.count, 1, 1))
         for lo, hi in quad.ranges:  # whole motions: a product never crosses a range's edge
             q = segmented_scan(quat_exp(a[lo:hi]), seg[lo:hi])  # after each step
-            prev = np.vstack([[[1.0, 0, 0, 0]], q[:-1]])
+            prev = q_before[lo:hi]
+            prev[0] = [1.0, 0.0, 0.0, 0.0]
+            prev[1:] = q[:-1]
             prev[np.r_[True, seg[lo + 1:hi] != seg[lo:hi - 1]]] = [1.0, 0.0, 0.0, 0.0]
-            R_before[lo:hi] = quat_to_matrix(prev)
             ends = slice(*np.searchsorted(quad.last, [lo, hi]))
             total[seg[quad.last[ends]]] = quat_to_matrix(q[quad.last[ends] - lo])
-        return cls(quad, omega, a, R_before, total)
+        return cls(quad, omega, a, q_before, total)
+
+    def rotations_before(self, steps: np.ndarray | slice) -> np.ndarray:
+        """(k, 3, 3) the rotation before each of ``steps`` (indices or a slice of steps)."""
+        return quat_to_matrix(self.q_before[steps])
 
     def rotation_at(self, pts: Points) -> np.ndarray:
         """(k, 3, 3) rotation (body at the instant -> body at the motion's start)."""
@@ -306,7 +313,7 @@ class Attitude:
         for lo in range(0, len(pts.h), STEP_CHUNK):
             c = slice(lo, lo + STEP_CHUNK)
             h = pts.h[c]
-            R0 = self.R_before[np.maximum(h, 0)] if len(self.a) else np.tile(np.eye(3), (len(h), 1, 1))
+            R0 = self.rotations_before(np.maximum(h, 0)) if len(self.a) else np.tile(np.eye(3), (len(h), 1, 1))
             R0 = np.where((h >= 0)[:, None, None], R0, np.eye(3))
             np.matmul(R0, quat_to_matrix(quat_exp(pts.W[c] @ self.omega)), out=out[c])
         return out
@@ -346,7 +353,7 @@ class Attitude:
         parameter change (hi - lo, 3, P) and their running sums within each motion (``running``;
         else None)."""
         s = slice(lo, hi)
-        per = (self.R_before[s] @ left_jacobian(self.a[s])) @ weighted(self.quad.A[s], D)
+        per = (self.rotations_before(s) @ left_jacobian(self.a[s])) @ weighted(self.quad.A[s], D)
         return per, segmented_cumsum(per, self.quad.seg[s]) if running else None
 
     def sensitivity(self, D: np.ndarray, pts: Points) -> np.ndarray:
@@ -370,7 +377,7 @@ class Attitude:
             out = (run - per)[np.maximum(hh - first, 0)]
         else:
             out = np.zeros((k, 3, P))
-        part = self.R_before[hh] @ left_jacobian(pts.W @ self.omega)
+        part = self.rotations_before(hh) @ left_jacobian(pts.W @ self.omega)
         part = part @ weighted(pts.W, D)
         out += part
         out[pts.h < 0] = 0.0

@@ -446,7 +446,7 @@ class JointModel:
             R = np.tile(np.eye(3), (sel.stop - sel.start, 1, 1))
             s = steps[j]
             if s.stop > s.start:
-                R[step[s] - sel.start] = att.R_before[s]
+                R[step[s] - sel.start] = att.rotations_before(s)
                 R[step[s.stop - 1] + 1 - sel.start] = att.total[j]
             Phi = np.zeros((K, 3, 3))
             np.add.at(Phi, k, wq[sel, None, None] ** 2 * (R @ Sg @ np.swapaxes(R, 1, 2)))

@@ -194,7 +194,7 @@ def test_attitude_formed_by_ranges_of_steps_equals_it_formed_at_once(monkeypatch
         quad = Quadrature(ms)
         att = Attitude.integrate(quad, ms.y * 0.5)
         pts = quad.points(ms.t[::2] + 0.002, ms.motion[::2])
-        got.append((quad.A.toarray(), pts.W.toarray(), att.R_before, att.total, att.rotation_at(pts),
+        got.append((quad.A.toarray(), pts.W.toarray(), att.rotations_before(slice(None)), att.total, att.rotation_at(pts),
                     att.end_sensitivity(D, before=True), att.sensitivity(D, pts)))
         starts = np.flatnonzero(np.r_[True, quad.seg[1:] != quad.seg[:-1]])
         assert [a for a, _ in quad.ranges] == sorted({a for a, _ in quad.ranges} & set(starts))
@@ -202,6 +202,20 @@ def test_attitude_formed_by_ranges_of_steps_equals_it_formed_at_once(monkeypatch
     assert len(quad.ranges) > 2
     for whole, ranged in zip(*got, strict=True):
         assert np.allclose(whole, ranged, rtol=1e-13, atol=1e-13)
+
+
+def test_rotations_before_some_steps_are_the_bits_of_all_steps_rotations():
+    """The attitude keeps quaternions and forms the matrices where used: those of a few steps,
+    picked or sliced, are the very numbers of all steps' matrices formed at once."""
+    rng = np.random.default_rng(4)
+    ms = MotionSamples.from_turns(*_motions(rng, m=5))
+    att = Attitude.integrate(Quadrature(ms), ms.y * 0.5)
+    every = att.rotations_before(slice(None))
+    picked = rng.integers(0, len(att.a), 40)
+    assert np.array_equal(att.rotations_before(picked), every[picked])
+    assert np.array_equal(att.rotations_before(slice(7, 29)), every[7:29])
+    starts = np.r_[0, np.flatnonzero(np.diff(att.quad.seg)) + 1]  # each motion's first step: no rotation yet
+    assert np.array_equal(every[starts], np.broadcast_to(np.eye(3), (len(starts), 3, 3)))
 
 
 def test_sensitivity_without_kept_sums_forms_them_over_its_instants_motions_alone():
