@@ -163,14 +163,15 @@ class Turns:
         if t0_ns is None:
             t0_ns = int((turns.schema.metadata or {}).get(b"imupipe.t0_ns", b"0"))
         tg = gyro.column("t_ns").to_numpy()
-        w = np.column_stack([gyro.column(c).to_numpy() for c in ("x", "y", "z")])
+        xyz = [gyro.column(c).to_numpy() for c in ("x", "y", "z")]
         starts = turns.column("t_start_ns").to_numpy()
         ends = turns.column("t_end_ns").to_numpy()
         ts, ws = [], []
         for a, b in zip(starts, ends, strict=True):
             i0, i1 = np.searchsorted(tg, a, "left"), np.searchsorted(tg, b, "right")
             ts.append((tg[i0:i1] - t0_ns) * 1e-9)
-            ws.append(w[i0:i1])
+            # each turn's own copy: views would keep a (k, 3) copy of the whole recording alive
+            ws.append(np.column_stack([x[i0:i1] for x in xyz]))
         return cls(turns.column("rest_before").to_numpy().astype(np.int64),
                    turns.column("rest_after").to_numpy().astype(np.int64), tuple(ts), tuple(ws))
 
