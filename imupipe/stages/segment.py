@@ -427,12 +427,14 @@ def rest_stats(table: pa.Table, bounds_ns: np.ndarray) -> tuple[np.ndarray, np.n
 
 def segment(inputs: Mapping[str, pa.Table], params: SegmentParams, solver: BoundSolver | None) -> dict:
     t_a, a = xyz(inputs["accel"])
-    t_g, w = xyz(inputs["gyro"])
+    t_g = inputs["gyro"].column("t_ns").to_numpy()
     if len(t_a) < 10 or len(t_g) < 10:
         raise SolverError("segmentation: accel and gyro need at least 10 samples each")
     t0 = int(min(t_a[0], t_g[0]))
     ta_s, tg_s = (t_a - t0) * 1e-9, (t_g - t0) * 1e-9
-    w_at_a = np.column_stack([np.interp(ta_s, tg_s, w[:, i]) for i in range(3)])
+    # from the gyro's columns: its (k, 3) copy is formed for the turns, after the detection's peak
+    w_at_a = np.column_stack([np.interp(ta_s, tg_s, inputs["gyro"].column(c).to_numpy())
+                              for c in ("x", "y", "z")])
     del tg_s
     det = Detection(ta_s, a, w_at_a, params)
     runs_ = det.rests()
@@ -456,7 +458,7 @@ def segment(inputs: Mapping[str, pa.Table], params: SegmentParams, solver: Bound
     table = rests.to_table()
     meta = dict(table.schema.metadata or {})
     meta[b"imupipe.segmentation"] = json.dumps(det.summary(len(rests))).encode()
-    return {"rests": table.replace_schema_metadata(meta), "turns": turns_table(rests, t_g, w, t0),
+    return {"rests": table.replace_schema_metadata(meta), "turns": turns_table(rests, *xyz(inputs["gyro"]), t0),
             "stillness": det.table(a, w_at_a, t0)}
 
 
