@@ -175,6 +175,12 @@ def test_turns_round_trip_through_tables(session):
     turns = Turns.from_tables(session["seg"]["turns"], session["d"]["gyro"])
     assert len(turns) == session["seg"]["turns"].num_rows
     assert all(len(t) == len(w) for t, w in zip(turns.t, turns.gyro, strict=True))
+    # each turn's samples are its own: no view keeps the whole recording's (k, 3) copy alive
+    g = session["d"]["gyro"]
+    starts = np.searchsorted(g.column("t_ns").to_numpy(), session["seg"]["turns"].column("t_start_ns").to_numpy())
+    for i, w in zip(starts, turns.gyro, strict=True):
+        assert w.base is None or w.base.size == w.size
+        assert np.array_equal(w, np.column_stack([g.column(c).to_numpy()[i:i + len(w)] for c in "xyz"]))
 
 
 def test_accel_without_thermal_and_detected_references(session):
