@@ -25,6 +25,7 @@ from pathlib import Path
 
 from .. import __version__
 from ..errors import ImupipeError, MissingExtraError
+from ..heap import release_free_memory
 from ..io import remove
 from ..paths import check_out_dir, safe_name, under
 from ..plugins import Registry, make_registry
@@ -154,6 +155,7 @@ def process_session(
             (done := _exports_in_place(run, registry, run_dir)) is not None:
         return done
     staging = _staging_dir(run_dir)
+    release_free_memory()  # the stages' freed arrays: the figures could not reuse them
     try:
         written = _export(run, registry, staging, export)
     except ExportError:  # the calibration stands; only a requested format could not be written
