@@ -318,34 +318,18 @@ class Attitude:
             np.matmul(R0, quat_to_matrix(quat_exp(pts.W[c] @ self.omega)), out=out[c])
         return out
 
-    def _steps_and_sums(self, D: np.ndarray, before: bool = True, into: np.ndarray | None = None
-                        ) -> tuple[np.ndarray | None, np.ndarray]:
-        """The running sums within each motion, before each step, of each step's start-frame
-        attitude change per unit parameter change (S, 3, P) (``before=False``: None; written
-        into ``into`` when it has their shape) and their totals through each motion's last step
-        (m', 3, P); by ranges of steps, so temporaries stay small. Kept for the last ``D`` when
-        ``before`` (the end-points and the samples of one residual evaluation share them)."""
-        memo = self.__dict__.get("_memo")
-        if memo is not None and memo[0] is D:
-            return memo[1], memo[2]
+    def _end_totals(self, D: np.ndarray) -> np.ndarray:
+        """The sums through each motion's last step (m', 3, P) of each step's start-frame
+        attitude change per unit parameter change; by ranges of steps, each motion's sum in the
+        order of a running sum (the same bits), so temporaries stay small."""
         quad = self.quad
-        P = D.shape[2]
-        shape = (len(self.a), 3, P)
-        cum = (into if into is not None and into.shape == shape else np.empty(shape)) if before else None
-        last = np.empty((len(quad.last), 3, P))
+        last = np.empty((len(quad.last), 3, D.shape[2]))
         for lo, hi in quad.ranges:
             ends = slice(*np.searchsorted(quad.last, [lo, hi]))
-            if before:
-                per, run = self._per_step(D, lo, hi)
-                last[ends] = run[quad.last[ends] - lo]
-                np.subtract(run, per, out=cum[lo:hi])
-            else:  # the totals alone: each motion's sum, in the running sum's order (the same bits)
-                per = self._per_step(D, lo, hi, running=False)[0]
-                bounds = _run_bounds(quad.seg[lo:hi])
-                last[ends] = [per[a:b].sum(axis=0) for a, b in itertools.pairwise(bounds)]
-        if before:
-            object.__setattr__(self, "_memo", (D, cum, last))
-        return cum, last
+            per = self._per_step(D, lo, hi, running=False)[0]
+            bounds = _run_bounds(quad.seg[lo:hi])
+            last[ends] = [per[a:b].sum(axis=0) for a, b in itertools.pairwise(bounds)]
+        return last
 
     def _per_step(self, D: np.ndarray, lo: int, hi: int, running: bool = True
                   ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -359,18 +343,14 @@ class Attitude:
     def sensitivity(self, D: np.ndarray, pts: Points) -> np.ndarray:
         """(k, 3, P) start-frame attitude change per unit change of parameters at the instants
         ``pts``, given ``D`` (N, 3, P) each sample's calibrated-rate derivative. The sums before
-        each step are those ``end_sensitivity(D, before=True)`` kept, else formed here over the
-        whole motions holding the instants' steps alone (a few instants at a time: no (S, 3, P)
-        array)."""
+        each step are formed here over the whole motions holding the instants' steps alone (a
+        few instants at a time: no (S, 3, P) array, which a long recording's fit would hold)."""
         P = D.shape[2]
         k = len(pts.h)
         if not k or not len(self.a):
             return np.zeros((k, 3, P))
         hh = np.maximum(pts.h, 0)
-        memo = self.__dict__.get("_memo")
-        if memo is not None and memo[0] is D:
-            out = memo[1][hh]
-        elif (pts.h >= 0).any():
+        if (pts.h >= 0).any():
             seg = self.quad.seg
             first = int(np.searchsorted(seg, seg[pts.h[pts.h >= 0].min()], "left"))  # its motion's first step
             per, run = self._per_step(D, first, int(hh.max()) + 1)
@@ -383,17 +363,9 @@ class Attitude:
         out[pts.h < 0] = 0.0
         return out
 
-    def end_sensitivity(self, D: np.ndarray, before: bool = False, into: np.ndarray | None = None) -> np.ndarray:
-        """(m, 3, P) the same at each motion's last sample (zeros for motions without steps);
-        ``before``: also keep the sums before every step for ``sensitivity`` with this ``D``
-        (in ``into``, an earlier attitude's that is given up, when it has their shape)."""
+    def end_sensitivity(self, D: np.ndarray) -> np.ndarray:
+        """(m, 3, P) the same at each motion's last sample (zeros for motions without steps)."""
         out = np.zeros((self.quad.samples.count, 3, D.shape[2]))
         if len(self.a):
-            out[self.quad.seg[self.quad.last]] = self._steps_and_sums(D, before, into)[1]
+            out[self.quad.seg[self.quad.last]] = self._end_totals(D)
         return out
-
-    @property
-    def sums_before(self) -> np.ndarray | None:
-        """The sums before every step kept by the last ``end_sensitivity(..., before=True)``."""
-        memo = self.__dict__.get("_memo")
-        return None if memo is None else memo[1]

@@ -477,14 +477,12 @@ class JointModel:
         return x
 
     def _endpoints(self, P: dict, x_l: np.ndarray, jacobian: bool = True, with_globals: bool = True,
-                   rate_columns: np.ndarray | None = None, att: Attitude | None = None, recycle: bool = False):
+                   rate_columns: np.ndarray | None = None, att: Attitude | None = None):
         """Gnomonic end-point ``z_K`` (m, 2) of every motion and what it needs for derivatives
         (``jacobian=False``: None for ``dz_gyro``, ``dz_dq`` and ``D``; ``with_globals=False``:
         the rate derivatives and ``dz_gyro`` hold the 6 walk columns only; ``rate_columns``
         (N_g, 3, k): the derivatives of the motions' calibrated rates w.r.t. k other parameters, in
-        place of the model's own (``gyro_columns``), with ``att`` the attitude at ``P``, ``x_l``;
-        ``recycle``: the attitude's sums before every step go into the last recycling
-        evaluation's, which is given up (``forget_recycled`` lets them go))."""
+        place of the model's own (``gyro_columns``), with ``att`` the attitude at ``P``, ``x_l``)."""
         if rate_columns is not None:
             omega, D = att.omega, rate_columns
         else:
@@ -500,12 +498,9 @@ class JointModel:
         if not jacobian:
             return zK, None, None, att, None, omega, u, du
         G = (np.swapaxes(Bp, 1, 2) - np.einsum("ma,mi->mai", zK, u0p)) / den[:, None, None]  # dz/dw
-        # the sums before every step are kept for a residual evaluation's samples; a term's columns
-        # (gyro_columns) form them by chunks of samples instead: no (S, 3, k) array at the map's peak
-        phi_T = att.end_sensitivity(D, before=self.has_samples and rate_columns is None,  # (m, 3, 21)
-                                    into=self.__dict__.get("_sums") if recycle else None)
-        if recycle and self.has_samples:  # fresh pages as long as the recording: cleared by the kernel each time
-            self.__dict__["_sums"] = att.sums_before
+        # the motion samples' rows form the sums before their steps by chunks of samples
+        # (Attitude.sensitivity): no (S, 3, 21) array through the fit
+        phi_T = att.end_sensitivity(D)  # (m, 3, 21)
         dz_gyro = np.einsum("mai,mij,mjp->map", G, -skew(w), phi_T)  # (m, 2, 21)
         dz_dq = np.einsum("mai,mij,mjk->mak", G, att.total, du[self.qr])  # (m, 2, 2)
         return zK, dz_gyro, dz_dq, att, D, omega, u, du
@@ -687,8 +682,7 @@ class JointModel:
 
         local.flat = flat
 
-        zK, dz_gyro, dz_dq, att, D, omega, u, du = self._endpoints(P, x_l, jacobian, with_globals,
-                                                                   recycle=out is not None) if self.m else \
+        zK, dz_gyro, dz_dq, att, D, omega, u, du = self._endpoints(P, x_l, jacobian, with_globals) if self.m else \
             (None,) * 6 + self.gravity(x_l)
         wga, wgb = self.walk_states(x_l, "wg")
         waa, wab = self.walk_states(x_l, "wa")
@@ -757,11 +751,6 @@ class JointModel:
         else:
             J_l = sp.csr_matrix((data, *pattern[1:]), shape=(len(r), Pl))
         return (r, J_g, J_l, sig) if signals else (r, J_g, J_l)
-
-    def forget_recycled(self) -> None:
-        """Let go of what evaluations over earlier ones (``residuals(..., out=...)``) reuse: the
-        attitude's sums before every step, as large as the Jacobian's globals (a fit's end)."""
-        self.__dict__.pop("_sums", None)
 
     def forget_jacobian_places(self) -> None:
         """Drop where J_l's values go (one integer per entry), kept to form Jacobians again: after

@@ -134,7 +134,6 @@ def fit(model: JointModel, max_iter: int = 30, x_g: np.ndarray | None = None,
     x_g, x_l, r, J_g, J_l, it, ok = solve_least_squares(
         residuals, x_g, x_l, offsets, max_iter=max_iter, tol=tol, fixed_globals=fixed_globals,
         residual=lambda g, l: model.residuals(g, l, jacobian=False)[0], final_jacobian=not local_only)
-    model.forget_recycled()
     if local_only:
         J_g = None
     lin = Linearised(model, x_g, x_l, r, J_g, J_l, it, ok)

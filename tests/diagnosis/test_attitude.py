@@ -12,6 +12,7 @@ from imupipe.diagnosis.attitude import (
     left_jacobian,
     segmented_cumsum,
     segmented_scan,
+    weighted,
 )
 from imupipe.rotations import (
     compose,
@@ -195,7 +196,7 @@ def test_attitude_formed_by_ranges_of_steps_equals_it_formed_at_once(monkeypatch
         att = Attitude.integrate(quad, ms.y * 0.5)
         pts = quad.points(ms.t[::2] + 0.002, ms.motion[::2])
         got.append((quad.A.toarray(), pts.W.toarray(), att.rotations_before(slice(None)), att.total, att.rotation_at(pts),
-                    att.end_sensitivity(D, before=True), att.sensitivity(D, pts)))
+                    att.end_sensitivity(D), att.sensitivity(D, pts)))
         starts = np.flatnonzero(np.r_[True, quad.seg[1:] != quad.seg[:-1]])
         assert [a for a, _ in quad.ranges] == sorted({a for a, _ in quad.ranges} & set(starts))
         assert quad.ranges[-1][1] == len(quad.step)
@@ -218,11 +219,11 @@ def test_rotations_before_some_steps_are_the_bits_of_all_steps_rotations():
     assert np.array_equal(every[starts], np.broadcast_to(np.eye(3), (len(starts), 3, 3)))
 
 
-def test_sensitivity_without_kept_sums_forms_them_over_its_instants_motions_alone():
-    """Without the sums ``end_sensitivity(before=True)`` keeps (a term's columns, at the map's
-    peak), ``sensitivity`` forms them over the whole motions holding its instants: the same bits,
-    for chunks of instants that start or end inside a motion, and instants of a motion
-    without steps; the end totals alone (each motion's sum) are the running sums' last ones."""
+def test_sensitivity_forms_the_sums_before_steps_over_its_instants_motions_alone():
+    """``sensitivity`` forms the running sums before each step over the whole motions holding its
+    instants (no (S, 3, P) array through a fit): the bits of the running sums over every step at
+    once, for chunks of instants that start or end inside a motion, and instants of a motion
+    without steps; the end totals (each motion's sum) are the running sums' last ones."""
     rng = np.random.default_rng(5)
     t, y = _motions(rng, m=6)
     t[3], y[3] = t[3][:1], y[3][:1]  # a motion of one sample: no step
@@ -230,16 +231,15 @@ def test_sensitivity_without_kept_sums_forms_them_over_its_instants_motions_alon
     D = rng.normal(size=(len(ms), 3, 4))
     quad = Quadrature(ms)
     pts = quad.points(ms.t + 0.002, ms.motion)
-    kept = Attitude.integrate(quad, ms.y * 0.5)
-    kept.end_sensitivity(D, before=True)
-    fresh = Attitude.integrate(quad, ms.y * 0.5)
-    ends = fresh.end_sensitivity(D)
-    assert fresh.sums_before is None
-    np.testing.assert_array_equal(ends, kept.end_sensitivity(D))
+    att = Attitude.integrate(quad, ms.y * 0.5)
+    per, run = att._per_step(D, 0, len(att.a))  # every step's, and their running sums, at once
+    ends = att.end_sensitivity(D)
+    np.testing.assert_array_equal(ends[quad.seg[quad.last]], run[quad.last])
+    hh = np.maximum(pts.h, 0)
+    within = att.rotations_before(hh) @ left_jacobian(pts.W @ att.omega) @ weighted(pts.W, D)
+    want = np.where((pts.h >= 0)[:, None, None], (run - per)[hh] + within, 0.0)
     for a, b in ((0, len(ms)), (5, 17), (20, 21), (30, 80)):
-        chunk = pts.subset(slice(a, b))
-        np.testing.assert_array_equal(fresh.sensitivity(D, chunk), kept.sensitivity(D, chunk))
-    assert fresh.sums_before is None  # formed for the instants, not kept
+        np.testing.assert_array_equal(att.sensitivity(D, pts.subset(slice(a, b))), want[a:b])
 
 
 def test_steady_sampling_shares_its_node_patterns_with_the_same_weights(monkeypatch):

@@ -75,14 +75,6 @@ def test_jacobians_written_over_earlier_ones_equal_fresh_ones(model):
     assert np.array_equal(r, r0) and np.array_equal(over_g, fresh_g) and (over_l != fresh_l).nnz == 0
     _, wrong_g, _ = m.residuals(x_g, x_l, with_globals=False, out=(fresh_g, fresh_l))  # other shape
     assert wrong_g.shape == (len(r), 0) and np.array_equal(fresh_g, over_g)
-    # the attitude's sums before every step are recycled too: written over by the next evaluation
-    _, again_g, again_l = m.residuals(*_point(m, 6), out=(J_g, J_l))
-    sums = m.__dict__["_sums"]
-    r, over_g, over_l = m.residuals(x_g, x_l, out=(again_g, again_l))
-    assert m.__dict__["_sums"] is sums
-    assert np.array_equal(r, r0) and np.array_equal(over_g, fresh_g) and (over_l != fresh_l).nnz == 0
-    m.forget_recycled()
-    assert "_sums" not in m.__dict__
 
 
 def test_factored_rate_derivatives_weigh_like_the_dense_ones(model):
