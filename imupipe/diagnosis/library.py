@@ -39,7 +39,7 @@ from .. import tails
 from .attitude import RateDerivatives
 from .linearised import Linearised
 from .residual_map import windows
-from .select import BOOT_DRAWS, Q_FDR, VISIBLE_MIN, Signals, block_wild_p, rigid_walks, time_blocks
+from .select import BOOT_DRAWS, Q_FDR, VISIBLE_MIN, Signals, block_wild_p, rigid_solver, time_blocks
 
 AXES = ("x", "y", "z")
 WARMUP_TAU_S = 120.0
@@ -281,7 +281,7 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
         Gr = sp.csc_matrix((r_use, (blocks, np.arange(N))), shape=(blocks.max() + 1, N))  # sliced by rows of the fit
         S_g, S_l = Gr @ lin.J_g, Gr @ lin.J_l
     libs = libraries(s)  # each formed in turn below, then forgotten: one library's columns held at a time
-    rigid = rigid_walks(lin)[0].solver_only()  # its J_l's scaled values would sit through the scoring
+    rigid = rigid_solver(lin)
     out = []
     draws = bootstrap_draws(len(libs) * (1 + len(AXES)), level)
     for lib in libs:

@@ -445,15 +445,36 @@ def rigid_walks(lin: Linearised) -> tuple[Bordered, sp.csr_matrix]:
     (calibration, gravity directions, a new turn-on bias after a power cycle): the visible
     fraction. What the walks take on top is noise they can mimic: it costs power (the
     information and minimum detectable size say how much), it does not hide the term."""
-    walk = lin.rows.of("walk_gyro") | lin.rows.of("walk_accel")
     # the values scaled, the pattern shared (no second copy of J_l's indices); the walks' rows
     # are a few runs: their entries scaled in place (no per-entry weight array at the map's peak)
     data, ptr = lin.J_l.data.copy(), lin.J_l.indptr
-    edges = np.flatnonzero(np.diff(np.r_[False, walk, False]))
-    for a, b in zip(edges[::2], edges[1::2], strict=True):
+    for a, b in _walk_runs(lin):
         data[ptr[a]:ptr[b]] *= RIGID
     J_l = sp.csr_matrix((data, lin.J_l.indices, ptr), shape=lin.J_l.shape)
     return Bordered(lin.J_g, J_l, lin.model.stages.offsets), J_l
+
+
+def rigid_solver(lin: Linearised) -> Bordered:
+    """``rigid_walks``' system for its solves alone (``Bordered.solver_only``), factored with the
+    walks' rows scaled in J_l's own values and those few values restored after: no copy of
+    J_l's values (the structure cells' peak); the same factors."""
+    data, ptr = lin.J_l.data, lin.J_l.indptr
+    runs = _walk_runs(lin)
+    kept = [data[ptr[a]:ptr[b]].copy() for a, b in runs]
+    try:
+        for a, b in runs:
+            data[ptr[a]:ptr[b]] *= RIGID
+        return Bordered(lin.J_g, lin.J_l, lin.model.stages.offsets).solver_only()
+    finally:
+        for (a, b), values in zip(runs, kept, strict=True):
+            data[ptr[a]:ptr[b]] = values
+
+
+def _walk_runs(lin: Linearised) -> list[tuple[int, int]]:
+    """The runs [a, b) of the bias walks' increment rows."""
+    walk = lin.rows.of("walk_gyro") | lin.rows.of("walk_accel")
+    edges = np.flatnonzero(np.diff(np.r_[False, walk, False]))
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
 
 
 def examine(lin: Linearised, c: Candidate, rigid: tuple[Bordered, sp.csr_matrix] | None = None) -> Tested:

@@ -27,6 +27,7 @@ from imupipe.diagnosis.select import (
     _stretch_of_rows,
     candidates,
     examine,
+    rigid_solver,
     rigid_walks,
     select,
     time_blocks,
@@ -231,3 +232,21 @@ def test_cubic_slope_is_savitzky_golay_without_scipy_signal():
         want = savgol_filter(y, win, 3, deriv=1, delta=0.01, axis=0)
         assert np.allclose(_cubic_slope(y, win, 0.01), want, rtol=1e-11, atol=1e-11 * np.abs(want).max())
         assert np.allclose(_cubic_slope(y[:, 0], win, 0.01), want[:, 0], rtol=1e-11, atol=1e-11 * np.abs(want).max())
+
+
+def test_the_rigid_solver_factors_rigid_walks_system_in_j_ls_own_values_and_restores_them(fitted):
+    """The structure cells' solver with the walks held still is ``rigid_walks``' system to the bit,
+    factored without a copy of J_l's values, which are left exactly as they were."""
+    lin = fitted[-1]
+    assert (lin.rows.of("walk_gyro") | lin.rows.of("walk_accel")).any()
+    before = lin.J_l.data.copy()
+    solver = rigid_solver(lin)
+    assert np.array_equal(lin.J_l.data, before)
+    assert solver.J_l is None and solver.J_g is None  # solves only
+    full = rigid_walks(lin)[0]
+    assert not np.array_equal(full.S, lin.system.S)  # the walks do weigh differently
+    rng = np.random.default_rng(0)
+    g, l = rng.normal(size=(lin.J_g.shape[1], 3)), rng.normal(size=(lin.J_l.shape[1], 3))
+    assert np.array_equal(solver.S, full.S)
+    for a, b in zip(solver.solve(g, l), full.solve(g, l), strict=True):
+        assert np.array_equal(a, b)
