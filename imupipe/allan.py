@@ -19,7 +19,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import nnls
 
 from .errors import SolverError, require
 
@@ -106,6 +105,9 @@ class NoiseFit:
 def fit_curve(curve: AllanCurve, terms: tuple[str, ...] = TERMS, iterations: int = 3) -> NoiseFit:
     """Non-negative weighted least squares of the Allan variance on ``terms`` (others held at 0);
     weights from the model's own variance (sd of avar = avar sqrt(2/edf)), iterated."""
+    # here, not at the top: a warm run loads this module and skips importing scipy.optimize
+    from scipy.optimize import nnls
+
     cols = [TERMS.index(t) for t in terms]
     A = basis(curve.tau)[:, cols]
     y = curve.adev**2

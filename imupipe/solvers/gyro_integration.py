@@ -23,7 +23,6 @@ from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
-from scipy.optimize import least_squares
 
 from ..components import Params
 from ..diagnosis.events import clipped
@@ -119,6 +118,9 @@ class GyroIntegration:
     params: ClassVar[type[Params]] = GyroIntegrationParams
 
     def solve(self, observations: GyroObservations, params: GyroIntegrationParams) -> TriadFit:
+        # here, not at the top: a warm run loads this module and skips importing scipy.optimize
+        from scipy.optimize import least_squares
+
         turns = observations.turns
         n_all = len(turns)
         if params.exclude_saturated:

@@ -71,7 +71,7 @@ def test_a_kind_is_registered_only_when_first_looked_up():
         "for kind in ('stages', 'exporters', 'executors', 'effects'):\n"
         "    r.names(kind)\n"
         "# every component registered: what only running them needs is still not imported\n"
-        "heavy = [m for m in ('ruptures', 'matplotlib', 'distributed',\n"
+        "heavy = [m for m in ('ruptures', 'matplotlib', 'distributed', 'scipy.optimize',\n"
         "                     'imupipe.diagnosis.residual_map') if m in sys.modules]\n"
         "assert not heavy, heavy\n"
     )
