@@ -235,9 +235,9 @@ def cells(rs: RowSet, groups: list | None = None) -> list[Cell]:
     out = []
     for (sensor, regime), idx in pairs(rs.sensor, rs.regime) if groups is None else groups:
         axis = rs.axis[idx]
-        groups = [((AXES[a],), idx[axis == a]) for a in levels(axis) if a >= 0]
-        groups.append((tuple(AXES), idx))
-        for axes, rows in groups:
+        by_axes = [((AXES[a],), idx[axis == a]) for a in levels(axis) if a >= 0]
+        by_axes.append((tuple(AXES), idx))
+        for axes, rows in by_axes:
             out += _cells_of(rs, rows, sensor, axes, regime)
     return out
 
