@@ -36,6 +36,8 @@ ROW_CHUNK = 1 << 16  # rows of a Jacobian taken at once where a product would co
 # would move by 1e-8 with the rounding)
 MIN_STRETCH = ROW_CHUNK
 HOPEFUL = 1e-6  # a step that cut the cost by more (relative) leaves its successor likely taken
+# damping below which a step's predicted decrease is the Gauss-Newton step's (to 0.1 %)
+NEAR_GAUSS_NEWTON = 1e-3
 
 
 def finite(a: np.ndarray) -> np.ndarray:
@@ -378,8 +380,11 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
     """Levenberg-Marquardt on ``residuals(x_g, x_l) -> (r, J_g, J_l)``.
 
     Returns ``(x_g, x_l, r, J_g, J_l, iterations, converged)`` at the optimum. Converged when
-    the relative decrease of the cost falls below ``tol``; then one undamped Gauss-Newton step
-    polishes the solution (the damping would otherwise leave it ~1e-8 short). ``fixed_globals``:
+    the relative decrease of the cost falls below ``tol``, or when a step damped by at most
+    ``NEAR_GAUSS_NEWTON`` is refused although the linearisation predicts it to gain less than
+    ``tol``: at the optimum rounding decides, and each further trial would cost a residual and
+    a factorisation to be refused again; then one undamped Gauss-Newton step polishes the
+    solution (the damping would otherwise leave it ~1e-8 short). ``fixed_globals``:
     only the locals move; ``J_g`` is still returned at the optimum. ``residual(x_g, x_l) -> r``
     (optional): the Jacobians are then formed over the old ones
     (``residuals(x_g, x_l, out=(J_g, J_l))``: one set in memory, and no fresh pages for the
@@ -390,6 +395,11 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
     ``residual``): only the solution is wanted when ``max_iter`` ends the fit unconverged, so its
     last point's Jacobians are not formed (``J_g``, ``J_l`` None then); the path is the same.
     """
+    def predicted_decrease(J_g, J_l, r, d_g, d_l) -> float:
+        """The cost's decrease the linearisation predicts for the step: |r|^2 - |r + J d|^2."""
+        Jd = np.asarray(J_l @ d_l) if fixed_globals else J_g @ d_g + J_l @ d_l
+        return -float(2 * (r @ Jd) + Jd @ Jd)
+
     def step(J_g: np.ndarray, J_l: sp.csr_matrix, r: np.ndarray, lam: float) -> tuple[np.ndarray, np.ndarray]:
         d_g, d_l = Bordered(J_g[:, :0] if fixed_globals else J_g, J_l, offsets, damping=lam).step(r)
         return (np.zeros(len(x_g)) if fixed_globals else d_g), d_l
@@ -423,10 +433,15 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
                 _, J_g, J_l = over(J_g, J_l, x_g, x_l)
             del r2, J_g2, J_l2
             hopeful = False
+            if lam <= NEAR_GAUSS_NEWTON and predicted_decrease(J_g, J_l, r, d_g, d_l) < tol * cost:
+                converged = True  # refused by rounding
+                break
             lam *= 10.0
             if lam > 1e8:
                 return x_g, x_l, r, J_g, J_l, it, converged
             d_g, d_l = step(J_g, J_l, r, lam)
+        if converged:
+            break
         decrease = (cost - cost2) / max(cost, 1e-300)
         hopeful = decrease > HOPEFUL
         x_g, x_l, cost = cand_g, cand_l, cost2

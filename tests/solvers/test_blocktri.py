@@ -233,3 +233,29 @@ def test_gram_from_runs_of_rows_alike_matches_the_sparse_product(monkeypatch):
     monkeypatch.setattr(blocktri, "_sparse_gram", lambda J, chunk: sparse_calls.append(J.shape) or (J.T @ J).tocsr())
     np.testing.assert_allclose(_gram(banded).toarray(), (banded.T @ banded).toarray(), rtol=1e-13, atol=1e-13)
     assert sparse_calls == [banded.shape]
+
+
+def test_levenberg_marquardt_ends_when_rounding_refuses_a_step_predicted_to_gain_nothing():
+    """At the optimum a trial's cost is decided by rounding, here by a bump of 1e-12 off the
+    start: a near Gauss-Newton step refused although the linearisation predicts it to gain less
+    than ``tol`` ends the fit, converged, at the point it had (then the polishing step, refused
+    too), instead of trying ever more damped steps until the damping gives up."""
+    rng = np.random.default_rng(3)
+    A, b = rng.normal(size=(20, 2)), rng.normal(size=20)
+    best = np.linalg.lstsq(A, b, rcond=None)[0]
+    start = best + 1e-9  # the linear model gains ~1e-18 of a cost ~10
+    evaluations = {"n": 0}
+
+    def residuals(xg, xl, out=None):
+        evaluations["n"] += 1
+        bump = 0.0 if np.array_equal(xg, start) else 1e-6
+        r = np.r_[A @ xg - b, bump, xl[0] - 1.0]
+        J_l = sp.csr_matrix(([1.0], ([21], [0])), shape=(22, 1))
+        return r, np.vstack([A, np.zeros((2, 2))]), J_l
+
+    xg, xl, *_, iterations, converged = solve_least_squares(
+        residuals, start.copy(), np.array([1.0]), np.array([0, 1]), residual=lambda g, l: residuals(g, l)[0])
+    assert converged and iterations == 1
+    np.testing.assert_array_equal(xg, start)
+    # the start, the refused step (with its Jacobians, and them again at the start) and the polish
+    assert evaluations["n"] == 4
