@@ -6,9 +6,12 @@ consumer-MEMS unit (``residual_nulls.realistic_imu``: gyro and accelerometer bia
 the calibration detects at every length), then runs, each as a whole process as a user
 runs it:
 
-* ``imupipe ingest SESSION``: CPU (user + sys), wall, peak resident memory;
+* ``imupipe ingest SESSION``: CPU (user + sys), wall, peak resident memory; the median of
+  ``--ingest-runs`` (5) processes by CPU: a half-second process, one run of it varied by 20 %
+  within an hour on a shared machine, and the run/ingest ratio with it;
 * ``imupipe run SESSION`` (default pipeline, a fresh output directory so nothing is
-  cached): CPU, wall, peak memory, and the slowest stages' wall seconds (run.json).
+  cached): CPU, wall, peak memory, and the slowest stages' wall seconds (run.json); the
+  median of ``--runs`` (1) by CPU.
 
 It prints one row per length with the run's sys time (the kernel's share of its CPU:
 ``perf`` shows it zeroing the fresh pages of large temporary arrays, ``clear_page_erms``),
@@ -33,7 +36,7 @@ suffers when other processes share the cores; CPU is the steadier measure of wor
 without the residual map stage (the calibration's own cost).
 
 Usage: ``python bench/scaling.py [--hours 0.5 1 2 4] [--imu realistic|default] [--keep DIR]
-[--pipeline FILE | --without-map]``
+[--pipeline FILE | --without-map] [--runs 1] [--ingest-runs 5]``
 """
 
 from __future__ import annotations
@@ -97,6 +100,15 @@ def measure(cmd: list[str], **kw) -> dict:
             "rss": usage.ru_maxrss * 1024, "stdout": out}
 
 
+def median_of(runs: int, cmd: list[str], fresh: Path, **kw) -> dict:
+    """The run of ``cmd`` with the median CPU of ``runs`` (each after ``fresh`` is removed)."""
+    results = []
+    for _ in range(runs):
+        shutil.rmtree(fresh, ignore_errors=True)
+        results.append(measure(cmd, **kw))
+    return sorted(results, key=lambda r: r["cpu"])[len(results) // 2]
+
+
 def without_map(path: Path) -> Path:
     """A copy of the default pipeline without the ``map`` stage and its exports."""
     lines, skip = [], False
@@ -140,6 +152,8 @@ def main() -> None:
     ap.add_argument("--pipeline", type=Path, default=None, help="pipeline TOML (default: the built-in)")
     ap.add_argument("--without-map", action="store_true",
                     help="the default pipeline without its residual map stage")
+    ap.add_argument("--runs", type=int, default=1, help="imupipe run processes per length (their median)")
+    ap.add_argument("--ingest-runs", type=int, default=5, help="imupipe ingest processes per length (their median)")
     args = ap.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="imupipe-scaling-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -159,13 +173,12 @@ def main() -> None:
             n = truth["protocol_params"]["n_positions"]
             dur = truth["n_samples"] / truth["rate_hz"]
             tables = work / f"{session.stem}.tables"
-            shutil.rmtree(tables, ignore_errors=True)
-            ingest = measure([*imupipe, "ingest", str(session), "--out", str(tables)], env=env)
+            ingest = median_of(args.ingest_runs, [*imupipe, "ingest", str(session), "--out", str(tables)], tables,
+                               env=env)
             arrays = int(measure([sys.executable, "-c", ARRAYS, str(tables)])["stdout"])
             out = work / f"out_{session.stem}"
-            shutil.rmtree(out, ignore_errors=True)
-            run = measure([*imupipe, "run", str(session), "--out", str(out), "--quiet", *pipeline],
-                          env=env)
+            run = median_of(args.runs, [*imupipe, "run", str(session), "--out", str(out), "--quiet", *pipeline],
+                            out, env=env)
             manifest = json.loads((out / session.stem / "run.json").read_text())
             stages = sorted(((v.get("seconds") or 0.0, k) for k, v in manifest["stages"].items()),
                             reverse=True)[:3]
@@ -181,7 +194,8 @@ def main() -> None:
     floor = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     print(f"imupipe run {' '.join(pipeline) or '(default pipeline)'} / ingest as whole processes, "
           "standard sessions at 100 Hz "
-          f"of the {args.imu} unit (this script's own peak RSS, the floor of a child's: {floor / MIB:.0f} MiB)")
+          f"of the {args.imu} unit, the median of {args.ingest_runs} ingest and {args.runs} run process(es) by CPU "
+          f"(this script's own peak RSS, the floor of a child's: {floor / MIB:.0f} MiB)")
     print(f"{'hours':>5} {'n_pos':>5} {'min':>4} {'ingest CPU':>10} {'wall':>6} {'MiB':>5} | {'run CPU':>8} "
           f"{'sys':>5} {'wall':>7} {'peak MiB':>8} | {'run/ingest':>10} {'arrays MiB':>10} {'mem target':>10} | "
           f"{'walks':>10} | slowest stages (wall s)")
