@@ -9,40 +9,25 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Any, ClassVar, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, runtime_checkable
 
 import pyarrow as pa
-from pydantic import AfterValidator, BaseModel, ConfigDict
+
+if TYPE_CHECKING:
+    from .params import Params
 
 
-class Params(BaseModel):
-    """Base for every params object: frozen, unknown keys rejected."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
+_PARAMS = ("Params", "NoParams", "GRAVITY_RANGE_M_S2", "FIELD_RANGE_T", "LocalGravity", "FieldStrength")
 
 
-class NoParams(Params):
-    pass
+def __getattr__(name: str) -> Any:
+    """The params names (``params.py``), imported on first use: a command that registers readers
+    only (``imupipe ingest``) does not import pydantic."""
+    if name in _PARAMS:
+        from . import params
 
-
-GRAVITY_RANGE_M_S2 = (9.7, 9.9)  # Earth's surface: 9.76 (equatorial peaks) to 9.84 (poles)
-FIELD_RANGE_T = (1e-7, 1e-3)  # Earth's field is 25-65 uT; 1 mT is 20 times the strongest
-
-
-def _in_range(lo: float, hi: float, what: str, fix: str):
-    def check(value: float) -> float:
-        if not lo <= value <= hi:
-            raise ValueError(f"{value:g} is not {what} ({lo:g} to {hi:g}): a unit slip? {fix}")
-        return value
-    return check
-
-
-LocalGravity = Annotated[float, AfterValidator(_in_range(
-    *GRAVITY_RANGE_M_S2, "a local gravity in m/s^2", "give it in m/s^2, e.g. 9.80665"))]
-"""A params field of local gravity, m/s^2, refused outside Earth's range (``g_m_s2 = 98.1``)."""
-FieldStrength = Annotated[float, AfterValidator(_in_range(
-    *FIELD_RANGE_T, "a geomagnetic field in tesla", "give it in T, e.g. 50e-6 for 50 uT"))]
-"""A params field of magnetic field strength, T, refused when it reads as uT or gauss."""
+        return getattr(params, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 # --------------------------------------------------------------------------- readers
@@ -132,10 +117,16 @@ class Stage:
     func: StageFunc
     inputs: Mapping[str, str]
     outputs: Mapping[str, str]
-    params: type[Params] = NoParams
+    params: type[Params] | None = None  # None: NoParams
     optional_inputs: frozenset[str] = frozenset()
     solver_kind: str | None = None  # when set, params carry `solver` + `solver_params`
     description: str = ""
+
+    def __post_init__(self) -> None:
+        if self.params is None:
+            from .params import NoParams
+
+            object.__setattr__(self, "params", NoParams)
 
 
 # --------------------------------------------------------------------------- solvers

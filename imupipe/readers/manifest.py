@@ -17,15 +17,17 @@ import tomllib
 import warnings
 from contextvars import ContextVar
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import pyarrow as pa
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ..components import Recording
 from ..errors import ConfigError, ReaderError, describe_validation
-from .csv import WHITESPACE, ColumnRef, canonical_table, read_columns
+from .csv import ColumnRef, canonical_table, read_columns
+
+if TYPE_CHECKING:
+    from ._manifest_model import Manifest, Sections, StreamSpec
 
 StreamName = Literal["accel", "gyro", "mag", "temperature"]
 G0 = 9.80665  # standard gravity, m/s^2 per g
@@ -49,104 +51,6 @@ FORMATS_BY_SUFFIX = {".csv": "csv", ".txt": "csv", ".tsv": "csv", ".dat": "csv",
                      ".mat": "matlab", ".h5": "matlab", ".hdf5": "matlab"}
 
 
-class _Model(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-
-PerAxis = float | tuple[float, float, float]
-
-
-class SessionInfo(_Model):
-    name: str
-    description: str = ""
-    device: str = "imu"  # device of streams that do not name one
-
-
-class StreamSpec(_Model):
-    """One stream from one file: ``SI = (raw - offset) * scale * unit_factor``."""
-
-    stream: StreamName
-    file: str
-    device: str | None = None
-    reader: str | None = None  # a registered reader parses the file instead of this module
-    source_stream: str | None = None  # with reader: which of its streams (default: the only one)
-    source_device: str | None = None  # with reader: which of its devices (default: the only one)
-    format: Literal["csv", "matlab"] | None = None  # default: by suffix
-    delimiter: str = ","  # one character, or "whitespace"
-    skip_lines: int = Field(0, ge=0, le=1_000_000)  # lines before the header (or the data, without header)
-    header: bool = True
-    variable: str | None = None  # matlab: dataset name (default: the file's only one)
-    columns: dict[str, ColumnRef] = {}  # t, x, y, z (or t, temperature) -> name / 0-based index
-    time_unit: Literal["s", "ms", "us", "ns", "samples"] = "s"
-    rate_hz: float | None = Field(None, gt=0)  # fixed rate when there is no time column
-    unit: str | None = None  # default: the canonical SI unit of the stream
-    scale: PerAxis = 1.0
-    lsb_per_unit: PerAxis | None = None  # datasheet sensitivity, e.g. 16384 LSB/g: scale = 1/it
-    offset: PerAxis = 0.0
-    repair: list[Literal["drop_zero_padding"]] = []
-
-    @model_validator(mode="after")
-    def _consistent(self) -> StreamSpec:
-        axes = ["temperature"] if self.stream == "temperature" else ["x", "y", "z"]
-        if self.unit is not None and self.unit not in UNITS[self.stream]:
-            raise ValueError(f"unit {self.unit!r} does not fit stream {self.stream!r}; "
-                             f"known: {', '.join(UNITS[self.stream])}")
-        if self.lsb_per_unit is not None and self.scale != 1.0:
-            raise ValueError("give either scale or lsb_per_unit, not both")
-        if self.reader is None:
-            extra = sorted(set(self.columns) - {"t", *axes})
-            if extra:
-                raise ValueError(f"columns has unknown key(s) {', '.join(extra)}; "
-                                 f"{self.stream} takes t, {', '.join(axes)}")
-            if self.columns and not set(axes) <= set(self.columns):
-                missing = [a for a in axes if a not in self.columns]
-                raise ValueError(f"columns lacks {', '.join(missing)}")
-            if self.columns and "t" not in self.columns and self.rate_hz is None:
-                raise ValueError("no time column: give columns.t or rate_hz")
-            if "t" in self.columns and self.rate_hz is not None and self.time_unit != "samples":
-                raise ValueError("both columns.t and rate_hz: give one (or time_unit = "
-                                 "\"samples\" for a sample counter)")
-            if self.time_unit == "samples" and self.rate_hz is None:
-                raise ValueError("time_unit = \"samples\" needs rate_hz")
-            if self.delimiter != WHITESPACE and len(self.delimiter) != 1:
-                raise ValueError("delimiter must be one character or \"whitespace\"")
-        return self
-
-    def axes(self) -> list[str]:
-        return ["temperature"] if self.stream == "temperature" else ["x", "y", "z"]
-
-    def column_refs(self) -> dict[str, ColumnRef]:
-        """Explicit columns, or positional defaults: [t,] x, y, z (or [t,] temperature)."""
-        if self.columns:
-            return dict(self.columns)
-        keys = self.axes() if self.rate_hz is not None and self.time_unit != "samples" \
-            else ["t", *self.axes()]
-        return {k: i for i, k in enumerate(keys)}
-
-    def scale_factors(self) -> np.ndarray:
-        """(k,) per-axis factor from raw values to the declared unit."""
-        scale = 1.0 / np.asarray(self.lsb_per_unit, float) if self.lsb_per_unit is not None \
-            else np.asarray(self.scale, float)
-        return np.broadcast_to(scale, (len(self.axes()),))
-
-
-class Sections(_Model):
-    """Named protocol sections, from a file (imucal's section list) and/or inline."""
-
-    file: str | None = None  # JSON {name: {start, end}} or CSV "name,start,end"
-    stream: StreamName = "accel"  # whose samples the indices count
-    device: str | None = None
-    unit: Literal["samples", "s"] = "samples"  # samples: 0-based, end exclusive; s: from 1st sample
-    items: dict[str, tuple[float, float]] = {}
-
-
-class Manifest(_Model):
-    session: SessionInfo
-    streams: list[StreamSpec] = Field(min_length=1)
-    sections: Sections | None = None
-    meta: dict[str, Any] = {}  # free-form facts copied into Recording.meta["meta"]
-
-
 def load_manifest(path: Path) -> Manifest:
     """Parse and validate a manifest; errors name the file and the key path."""
     try:
@@ -157,6 +61,10 @@ def load_manifest(path: Path) -> Manifest:
         raise ConfigError(f"{path}: not valid TOML (arrays or tables nested too deeply)") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    from pydantic import ValidationError
+
+    from ._manifest_model import Manifest
+
     try:
         return Manifest.model_validate(doc)
     except ValidationError as exc:

@@ -63,7 +63,7 @@ def test_a_kind_is_registered_only_when_first_looked_up():
         "from imupipe.plugins import make_registry\n"
         "r = make_registry()\n"
         "assert 'mcap' in r.names('readers')\n"
-        "heavy = [m for m in ('imupipe.solvers.joint_ml', 'imupipe.stages.refine', 'polars',\n"
+        "heavy = [m for m in ('imupipe.solvers.joint_ml', 'imupipe.stages.refine', 'polars', 'pydantic',\n"
         "                     'scipy.optimize', 'imupipe.diagnosis.residual_map') if m in sys.modules]\n"
         "assert not heavy, heavy\n"
         "assert 'joint_ml' in r.names('solvers')\n"
@@ -73,6 +73,22 @@ def test_a_kind_is_registered_only_when_first_looked_up():
         "# every component registered: what only running them needs is still not imported\n"
         "heavy = [m for m in ('ruptures', 'matplotlib', 'distributed', 'scipy.optimize',\n"
         "                     'imupipe.diagnosis.residual_map') if m in sys.modules]\n"
+        "assert not heavy, heavy\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_reading_a_recording_imports_neither_pydantic_nor_pyarrow_compute():
+    """``imupipe ingest``: the params' models and Arrow's compute kernels are a quarter of its
+    imports; a reader's tables come out in their schema's types without a cast."""
+    example = Path(__file__).resolve().parents[2] / "examples" / "standard-session.mcap"
+    code = (
+        "import sys\n"
+        "from imupipe.ingest import read_recording\n"
+        "from imupipe.plugins import make_registry\n"
+        f"rec = read_recording({str(example)!r}, make_registry())\n"
+        "assert rec.device()['accel'].num_rows > 0\n"
+        "heavy = [m for m in ('pydantic', 'pyarrow.compute') if m in sys.modules]\n"
         "assert not heavy, heavy\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
