@@ -4,17 +4,12 @@ rounding floor (other BLAS kernels' spread, a hundred-thousandth of the statisti
 from __future__ import annotations
 
 import copy
-import importlib.util
-from pathlib import Path
 
-BENCH = Path(__file__).resolve().parents[2] / "bench" / "residual_identity.py"
+from bench_scripts import load_bench
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("residual_identity", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("residual_identity")
 
 
 REF = {"session": "/a/s.mcap",

@@ -2,20 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
-
-BENCH = Path(__file__).resolve().parents[2] / "bench"
+from bench_scripts import BENCH, load_bench
 
 
 def _bench(monkeypatch):
     monkeypatch.syspath_prepend(str(BENCH))  # it imports residual_nulls from beside it
-    spec = importlib.util.spec_from_file_location("bench_diagnosis", BENCH / "diagnosis.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("diagnosis")
 
 
 def _run(kind, sizes, findings, factor=None, candidates=(), not_identifiable=(), **judged):
