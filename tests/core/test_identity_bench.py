@@ -1,10 +1,12 @@
-"""bench/residual_identity.py's judgement of two runs' calibration.json: 1e-9 relative, or the
-rounding floor (other BLAS kernels' spread, a hundred-thousandth of the statistical spread)."""
+"""bench/residual_identity.py's judgement of two runs' calibration.json and residual map: 1e-9
+relative, or the rounding floor (other BLAS kernels' spread; for the calibration also a
+hundred-thousandth of the statistical spread)."""
 
 from __future__ import annotations
 
 import copy
 
+import numpy as np
 from bench_scripts import load_bench
 
 
@@ -63,3 +65,25 @@ def test_a_field_without_a_statistical_spread_is_allowed_ten_times_the_kernels_s
     other_kernel = _changed(gyro__covariance=[[4e-10 * (1 + 1e-6) * (1 + 2e-7), 1e-11], [1e-11, 4e-10]])
     assert _failing(b, moved, [other_kernel]) == []
     assert _failing(b, moved, [copy.deepcopy(moved)]) == ["/gyro/covariance"]  # a kernel that moved nothing
+
+
+def test_a_map_number_is_allowed_ten_times_its_spread_over_kernels():
+    """The map's per-sample columns and document numbers by ``judge_map``: 1e-9, or ten times what
+    another BLAS kernel moves them with the new code (a kernel's non-finite difference sets no floor)."""
+    b = _bench()
+    ref = ({"whitened": np.array([1.0, -2.0, 0.5])}, {"blocks": [{"chi2": 100.0, "p_value": 1e-4}]})
+    new = ({"whitened": np.array([1.0, -2.0 * (1 + 1e-8), 0.5])}, {"blocks": [{"chi2": 100.0, "p_value": 1e-4}]})
+
+    def failing(kernels):
+        judged = b.judge_map(b.compare_maps(ref, new), [b.compare_maps(new, k) for k in kernels], 1e-9)
+        return [name for d, allowed, name in judged if d > allowed]
+
+    assert failing([]) == ["column whitened"]
+    moved = ({"whitened": np.array([1.0, -2.0 * (1 + 1e-8) * (1 + 2e-9), 0.5])}, new[1])
+    assert failing([moved]) == []
+    assert failing([new]) == ["column whitened"]  # a kernel that moved nothing
+    reshaped = ({"whitened": np.array([1.0, 2.0])}, new[1])
+    assert failing([reshaped]) == ["column whitened"]
+    p_moved = (new[0], {"blocks": [{"chi2": 100.0, "p_value": 1e-4 * (1 + 1e-6)}]})
+    assert b.compare_maps(new, p_moved)[-1][1] == "residual_map.json/blocks[0]/p_value"
+    assert failing([p_moved]) == ["column whitened"]
