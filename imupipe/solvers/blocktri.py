@@ -384,7 +384,10 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
     ``NEAR_GAUSS_NEWTON`` is refused although the linearisation predicts it to gain less than
     ``tol``: at the optimum rounding decides, and each further trial would cost a residual and
     a factorisation to be refused again; then one undamped Gauss-Newton step polishes the
-    solution (the damping would otherwise leave it ~1e-8 short). ``fixed_globals``:
+    solution (the damping would otherwise leave it ~1e-8 short), with the last Jacobians formed:
+    when the converging step was judged by its residual alone, the point before's (at the
+    optimum they barely move; one Jacobian fewer: the map's fit moves by less than another
+    BLAS kernel's rounding moves it, ``bench/residual_identity.py``). ``fixed_globals``:
     only the locals move; ``J_g`` is still returned at the optimum. ``residual(x_g, x_l) -> r``
     (optional): the Jacobians are then formed over the old ones
     (``residuals(x_g, x_l, out=(J_g, J_l))``: one set in memory, and no fresh pages for the
@@ -417,7 +420,7 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
     r, J_g, J_l = residuals(x_g, x_l)
     cost = float(r @ r)
     lam = 1e-6
-    converged = False
+    converged = stale = False
     hopeful = True  # the next trial point is expected to be taken (see the docstring)
     it = 0
     for it in range(1, max_iter + 1):
@@ -447,13 +450,17 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
         x_g, x_l, cost = cand_g, cand_l, cost2
         if last and decrease >= tol:  # the end, unconverged: no polishing step needs them
             return x_g, x_l, r2, None, None, it, converged
+        if decrease < tol:
+            converged = True
+            stale = J_g2 is None  # the polishing step uses the Jacobians of the point before
+            r = r2
+            if not stale:
+                J_g, J_l = J_g2, J_l2
+            break
         if J_g2 is None:
             J_g2, J_l2 = over(J_g, J_l, x_g, x_l)[1:]
         r, J_g, J_l = r2, J_g2, J_l2
         lam = max(lam / 10.0, 1e-12)
-        if decrease < tol:
-            converged = True
-            break
     if converged:  # an undamped Gauss-Newton step lands on the optimum (quadratic convergence)
         d_g, d_l = step(J_g, J_l, r, 0.0)
         r2, J_g2, J_l2 = trial(x_g + d_g, x_l + d_l, hopeful)
@@ -462,6 +469,6 @@ def solve_least_squares(residuals, x_g: np.ndarray, x_l: np.ndarray, offsets: np
             if J_g2 is None:
                 J_g2, J_l2 = over(J_g, J_l, x_g, x_l)[1:]
             J_g, J_l = J_g2, J_l2
-        elif residual is not None and J_g2 is not None:
+        elif residual is not None and (J_g2 is not None or stale):
             _, J_g, J_l = over(J_g, J_l, x_g, x_l)
     return x_g, x_l, r, J_g, J_l, it, converged

@@ -259,3 +259,39 @@ def test_levenberg_marquardt_ends_when_rounding_refuses_a_step_predicted_to_gain
     np.testing.assert_array_equal(xg, start)
     # the start, the refused step (with its Jacobians, and them again at the start) and the polish
     assert evaluations["n"] == 4
+
+
+def test_levenberg_marquardt_polishes_from_the_last_jacobian_when_the_final_step_was_judged_by_its_residual():
+    """A fit whose residual stays large at the optimum converges linearly: its last step, judged
+    by the residual alone, gains less than ``tol``. The polishing Gauss-Newton step then uses the
+    Jacobians of the point before (at the optimum they barely move) instead of forming them there:
+    one Jacobian fewer, the same optimum as with fresh Jacobians at every trial, and the Jacobians
+    returned are those of the point returned."""
+    rng = np.random.default_rng(5)
+    t = np.linspace(0, 2, 30)
+    y = np.exp(0.7 * t) + 1.5 * rng.normal(size=30)
+    formed = []
+
+    def residuals(xg, xl, out=None):
+        formed.append("J")
+        e = np.exp(xg[0] * t)
+        J_g = np.zeros((31, 2)) if out is None else out[0]
+        J_g[:30, 0], J_g[:30, 1], J_g[30] = -t * e, -1.0, 0.0
+        return np.r_[y - e - xg[1], xl[0] - 1.0], J_g, sp.csr_matrix(([1.0], ([30], [0])), shape=(31, 1))
+
+    def residual(xg, xl):
+        r = residuals(xg, xl)[0]
+        formed[-1] = "r"
+        return r
+
+    start = (np.array([0.0, 0.0]), np.array([0.0]), np.array([0, 1]))
+    fresh = solve_least_squares(residuals, *start, tol=1e-12)
+    formed.clear()
+    lean = solve_least_squares(residuals, *start, tol=1e-12, residual=residual)
+    assert lean[6]
+    # the converging step and the polishing step, both by their residual; then the Jacobians at the end
+    assert "".join(formed).endswith("JrrJ")
+    np.testing.assert_allclose(lean[0], fresh[0], rtol=1e-12)
+    r, J_g, _ = residuals(lean[0], lean[1])
+    np.testing.assert_array_equal(lean[2], r)
+    np.testing.assert_array_equal(lean[3], J_g)
