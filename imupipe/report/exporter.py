@@ -154,7 +154,7 @@ class ReportExporter:
     figures embedded)."""
 
     name = "report"
-    version = "2"  # bump when the report or a figure changes for the same tables (export cache)
+    version = "3"  # bump when the report or a figure changes for the same tables (export cache)
     writes = ("report.md", "report.html", "figures")
 
     def export(self, results: Mapping[str, pa.Table], context: Mapping[str, Any], out_dir: Path) -> list[Path]:
