@@ -38,9 +38,10 @@ DPI = 110
 PAD_IN = 0.6  # canvas beyond a figure's axes on every side, for labels and legends outside them
 
 
-def _new_figure(plt, size: tuple[float, float]):
-    """A figure whose axes sit as on a ``size`` (inches) figure, on a canvas ``PAD_IN`` larger on
-    every side: labels and legends outside the axes stay on it, for ``_save`` to crop."""
+def _new_figure(plt, size: tuple[float, float], suptitle: str | None = None):
+    """A figure whose axes (and ``suptitle``) sit as on a ``size`` (inches) figure, on a canvas
+    ``PAD_IN`` larger on every side: labels and legends outside the axes stay on it, for
+    ``_save`` to crop."""
     w, h = size
     W, H = w + 2 * PAD_IN, h + 2 * PAD_IN
     fig = plt.figure(figsize=(W, H), dpi=DPI)
@@ -49,6 +50,8 @@ def _new_figure(plt, size: tuple[float, float]):
                         right=(rc["figure.subplot.right"] * w + PAD_IN) / W,
                         bottom=(rc["figure.subplot.bottom"] * h + PAD_IN) / H,
                         top=(rc["figure.subplot.top"] * h + PAD_IN) / H)
+    if suptitle is not None:
+        fig.suptitle(suptitle, y=(0.98 * h + PAD_IN) / H)  # matplotlib's 0.98 of the unpadded height
     return fig
 
 
@@ -176,9 +179,8 @@ class ReportExporter:
             if f"{name}.png" in {p.name for p in written}:  # the same plot of another stage
                 name = f"{stage}_{name}"
             if panels:
-                fig = _new_figure(plt, (8, 7))
+                fig = _new_figure(plt, (8, 7), suptitle=title)
                 draw(fig)
-                fig.suptitle(title, y=(0.98 * 7 + PAD_IN) / (7 + 2 * PAD_IN))  # 0.98 of the axes' 7 in
             else:
                 fig = _new_figure(plt, (7, 3.6))
                 ax = fig.subplots()
