@@ -35,7 +35,7 @@ def _col(table: pa.Table, name: str) -> np.ndarray:
 
 
 DPI = 110
-PAD_IN = 0.6  # canvas beyond a figure's axes on every side, for labels and legends outside them
+PAD_IN = 2.0  # canvas beyond the axes on every side: the widest labels (the heat map's cell names, ~1.4 in) fit
 
 
 def _new_figure(plt, size: tuple[float, float], suptitle: str | None = None):
@@ -57,8 +57,8 @@ def _new_figure(plt, size: tuple[float, float], suptitle: str | None = None):
 
 def _save(fig, path: Path) -> None:
     """PNG of what is drawn plus 0.1 in, as ``bbox_inches="tight"`` gives, from one rendering
-    cropped (savefig's tight box lays the figure out twice: ~20 ms a figure); savefig's when
-    something reaches past the canvas."""
+    cropped (savefig's tight box lays the figure out twice: ~20 ms a figure); when something
+    reaches past the canvas, savefig draws that box (measured here: a second rendering, not two)."""
     from matplotlib.image import imsave
 
     canvas = fig.canvas
@@ -67,7 +67,7 @@ def _save(fig, path: Path) -> None:
     w, h = fig.get_size_inches()
     with atomic_path(path) as tmp:
         if box.x0 < 0 or box.y0 < 0 or box.x1 > w or box.y1 > h:
-            fig.savefig(tmp, format="png", dpi=DPI, bbox_inches="tight")
+            fig.savefig(tmp, format="png", dpi=DPI, bbox_inches=box)
             return
         top, bottom, left, right = (round(v * fig.dpi) for v in (h - box.y1, h - box.y0, box.x0, box.x1))
         imsave(tmp, np.asarray(canvas.buffer_rgba())[top:bottom, left:right], format="png", dpi=fig.dpi)

@@ -11,7 +11,7 @@ mpl.use("Agg")
 import matplotlib.pyplot as plt
 from matplotlib.image import imread
 
-from imupipe.report.exporter import DPI, _new_figure, _save
+from imupipe.report.exporter import DPI, PAD_IN, _new_figure, _save
 
 
 def _drawn(note_x: float = 0.5):
@@ -25,7 +25,7 @@ def _drawn(note_x: float = 0.5):
     return fig
 
 
-@pytest.mark.parametrize("note_x", [0.5, 1.6])  # 1.6: past the padded canvas, savefig's tight box
+@pytest.mark.parametrize("note_x", [0.5, 2.5])  # 2.5 axes widths: past the padded canvas
 def test_a_figure_is_cropped_as_a_tight_bounding_box_would_crop_it(tmp_path, note_x):
     fig = _drawn(note_x)
     _save(fig, tmp_path / "one.png")
@@ -33,8 +33,8 @@ def test_a_figure_is_cropped_as_a_tight_bounding_box_would_crop_it(tmp_path, not
     plt.close(fig)
     one, tight = imread(tmp_path / "one.png"), imread(tmp_path / "tight.png")
     assert abs(one.shape[0] - tight.shape[0]) <= 1 and abs(one.shape[1] - tight.shape[1]) <= 1
-    if note_x > 1:  # wider than the canvas: only savefig can draw it
-        assert one.shape[1] > (7 + 1.2) * DPI
+    if note_x > 1:  # wider than the canvas: savefig draws the measured box
+        assert one.shape[1] > (7 + 2 * PAD_IN) * DPI
     h, w = min(one.shape[0], tight.shape[0]), min(one.shape[1], tight.shape[1])
     # the same picture: a pixel's shift at most (the crop rounds where savefig snaps)
     assert np.mean(np.abs(one[:h, :w] - tight[:h, :w]) > 0.1) < 0.05
