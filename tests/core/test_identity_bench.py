@@ -84,6 +84,10 @@ def test_a_map_number_is_allowed_ten_times_its_spread_over_kernels():
     assert failing([new]) == ["column whitened"]  # a kernel that moved nothing
     reshaped = ({"whitened": np.array([1.0, 2.0])}, new[1])
     assert failing([reshaped]) == ["column whitened"]
-    p_moved = (new[0], {"blocks": [{"chi2": 100.0, "p_value": 1e-4 * (1 + 1e-6)}]})
-    assert b.compare_maps(new, p_moved)[-1][1] == "residual_map.json/blocks[0]/p_value"
-    assert failing([p_moved]) == ["column whitened"]
+    # a document number has its own floor (a p-value's on -log10 p): the column's does not cover it
+    p_new = (ref[0], {"blocks": [{"chi2": 100.0, "p_value": 1e-4 * (1 + 1e-7)}]})  # 1.1e-8 on -log10 p
+    p_kernel = (ref[0], {"blocks": [{"chi2": 100.0, "p_value": 1e-4 * (1 + 2e-7)}]})
+    column_kernel = (moved[0], p_new[1])
+    for kernels, ok in (([column_kernel], False), ([p_kernel], True)):
+        judged = b.judge_map(b.compare_maps(ref, p_new), [b.compare_maps(p_new, k) for k in kernels], 1e-9)
+        assert [(name, d <= allowed) for d, allowed, name in judged if d] == [("residual_map.json/blocks[0]/p_value", ok)]
