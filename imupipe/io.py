@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import shutil
-
 import contextlib
 import hashlib
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -45,6 +44,12 @@ def _umask() -> int:
 def write_text(path: Path, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+def copy_file(src: Path, dst: Path) -> None:
+    """``dst`` becomes a copy of ``src`` atomically (a temporary name, then a rename)."""
+    with atomic_path(dst) as tmp:
+        shutil.copyfile(src, tmp)
 
 
 class _Hashing:

@@ -52,6 +52,7 @@ from .status import render, stage_states
 log = logging.getLogger("imupipe.pipeline")
 
 CACHE_DIR = ".cache"
+FIGURES_DIR = "figures"  # in CACHE_DIR: the report's figures by their key
 MANIFEST = "run.json"
 CALIBRATION = "calibration.json"
 FOLDER_SESSIONS = ("session.toml", "metadata.yaml")  # files that stand for their whole folder
@@ -348,7 +349,9 @@ def _export(run: SessionRun, registry: Registry, run_dir: Path, formats: Sequenc
 
     def full_context() -> dict:  # the verdict is computed only when an exporter has to run
         if not full:
-            full.update(context)
+            # figures by what they are drawn from: a report redrawn because one table changed
+            # copies the others (report.exporter.figure_key)
+            full.update(context, figure_store=str(run.cache.root / FIGURES_DIR))
             calibration.update({str(r): t for r in pipeline.export_calibration
                                 if (t := run.table(r)) is not None})
             if calibration:

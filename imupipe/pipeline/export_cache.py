@@ -20,12 +20,11 @@ kept are the paths their ``export`` returns.
 from __future__ import annotations
 
 import json
-import shutil
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from ..io import atomic_path, remove, write_text
+from ..io import copy_file, remove, write_text
 from .cache import canonical, sha256
 
 MARKER = ".exports.json"
@@ -95,12 +94,6 @@ def _mark(run_dir: Path, name: str, key: str, paths: list[Path]) -> None:
     write_text(Path(run_dir) / MARKER, json.dumps(marker, indent=1, sort_keys=True) + "\n")
 
 
-def _copy(src: Path, dst: Path) -> None:
-    """``dst`` becomes a copy of ``src`` atomically (a temporary name, then a rename)."""
-    with atomic_path(dst) as tmp:
-        shutil.copyfile(src, tmp)
-
-
 def run_cached(name: str, exporter: Any, key: str, tables: Callable[[], Mapping[str, Any]],
                context: Callable[[], Mapping[str, Any]], run_dir: Path, cache_root: Path
                ) -> list[Path]:
@@ -122,14 +115,14 @@ def run_cached(name: str, exporter: Any, key: str, tables: Callable[[], Mapping[
             remove(run_dir / target)
         paths = [run_dir / rel for rel in stored]
         for rel, dst in zip(stored, paths):
-            _copy(entry / rel, dst)
+            copy_file(entry / rel, dst)
         _mark(run_dir, name, key, paths)
         return paths
     written = [Path(p) for p in exporter.export(tables(), context(), run_dir)]
     inside = [p for p in written if p.resolve().is_relative_to(run_dir.resolve()) and p.is_file()]
     rels = [p.resolve().relative_to(run_dir.resolve()).as_posix() for p in inside]
     for rel, src in zip(rels, inside):
-        _copy(src, entry / rel)
+        copy_file(src, entry / rel)
     write_text(entry / INDEX, json.dumps({"key": key, "files": rels}, indent=1) + "\n")
     _mark(run_dir, name, key, [run_dir / r for r in rels])
     return written

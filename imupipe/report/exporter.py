@@ -7,11 +7,15 @@ whitened residuals of a joint fit and its chi2/dof per block), ``validation``
 (turn-angle errors, eq. 39), ``rests`` (positions on the sphere) and ``stillness``
 (what the segmentation saw, the signals with the rests shaded), ``noise`` with ``allan``
 (the noise stage's terms and Allan plot). Needs the
-``report`` extra (matplotlib).
+``report`` extra (matplotlib). With ``context["figure_store"]`` (``imupipe run`` gives its
+cache's ``figures/``), a figure drawn before from the same values (``figure_key``) is copied
+from there instead of drawn.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import json
 from collections.abc import Mapping
 from pathlib import Path
@@ -22,7 +26,7 @@ import pyarrow as pa
 
 from .. import schemas
 from ..errors import require
-from ..io import atomic_path, write_text
+from ..io import atomic_path, copy_file, write_text
 from ..paths import safe_name, under
 from . import html, noise_figures, residual_figures, segment_figures
 
@@ -71,6 +75,61 @@ def _save(fig, path: Path) -> None:
             return
         top, bottom, left, right = (round(v * fig.dpi) for v in (h - box.y1, h - box.y0, box.x0, box.x1))
         imsave(tmp, np.asarray(canvas.buffer_rgba())[top:bottom, left:right], format="png", dpi=fig.dpi)
+
+
+@functools.cache
+def _report_code() -> bytes:
+    """The report package's sources: a figure drawn by other code is another figure."""
+    h = hashlib.sha256()
+    for path in sorted(Path(__file__).parent.glob("*.py")):
+        h.update(path.name.encode() + path.read_bytes())
+    return h.digest()
+
+
+def _feed(h, x) -> None:
+    """``x``'s content into hash ``h``; TypeError for a kind not handled here."""
+    if x is None or isinstance(x, (bool, int, float, str)):
+        h.update(repr(x).encode())  # repr: 1, 1.0 and "1" differ
+    elif isinstance(x, np.ndarray) and not x.dtype.hasobject:
+        h.update(f"a{x.dtype.str}{x.shape}".encode())
+        h.update(np.ascontiguousarray(x).data)
+    elif isinstance(x, pa.Table):  # its schema with the metadata, then every buffer (equal tables
+        h.update(b"t")              # chunked or sliced otherwise differ: a redraw, never a wrong figure)
+        h.update(x.schema.serialize())
+        for column in x.columns:
+            for chunk in column.chunks:
+                h.update(f"c{chunk.offset},{len(chunk)},{chunk.null_count}".encode())
+                for buf in chunk.buffers():
+                    h.update(b"-" if buf is None else buf)
+    elif isinstance(x, dict):
+        h.update(b"{")
+        for k in sorted(x, key=repr):
+            _feed(h, k)
+            _feed(h, x[k])
+        h.update(b"}")
+    elif isinstance(x, (list, tuple)):
+        h.update(b"[")
+        for v in x:
+            _feed(h, v)
+        h.update(b"]")
+    else:
+        raise TypeError(f"no digest for {type(x).__name__}")
+
+
+def figure_key(name: str, title: str, panels: bool, draw) -> str | None:
+    """What a figure is drawn from: the report's code and version, matplotlib's, its name and
+    title, and the values its ``draw`` holds (defaults and closure); None when one of them is of
+    a kind ``_feed`` does not digest (the figure is then always drawn)."""
+    import matplotlib
+
+    h = hashlib.sha256(_report_code())
+    h.update(repr((ReportExporter.version, matplotlib.__version__, name, title, panels, DPI, PAD_IN)).encode())
+    try:
+        for value in (*(draw.__defaults__ or ()), *(c.cell_contents for c in draw.__closure__ or ())):
+            _feed(h, value)
+    except TypeError:
+        return None
+    return h.hexdigest()
 
 
 def _summary(table: pa.Table) -> dict:
@@ -174,22 +233,30 @@ class ReportExporter:
         if context.get("skipped"):
             lines += ["Skipped stages: " + ", ".join(f"`{k}` ({v})" for k, v in dict(context["skipped"]).items()), ""]
         groups = _by_stage(results)
+        store = context.get("figure_store")
 
         def figure(name: str, title: str, draw, stage: str = "", panels: bool = False) -> None:
             if f"{name}.png" in {p.name for p in written}:  # the same plot of another stage
                 name = f"{stage}_{name}"
-            if panels:
-                fig = _new_figure(plt, (8, 7), suptitle=title)
-                draw(fig)
-            else:
-                fig = _new_figure(plt, (7, 3.6))
-                ax = fig.subplots()
-                draw(ax)
-                ax.set_title(title)
-                ax.grid(alpha=0.3)
             path = under(figs, f"{safe_name(name, 'figure')}.png")
-            _save(fig, path)
-            plt.close(fig)
+            key = figure_key(name, title, panels, draw) if store else None
+            kept = None if key is None else Path(store) / key[:2] / f"{key}.png"
+            if kept is not None and kept.is_file():  # drawn before from the same values
+                copy_file(kept, path)
+            else:
+                if panels:
+                    fig = _new_figure(plt, (8, 7), suptitle=title)
+                    draw(fig)
+                else:
+                    fig = _new_figure(plt, (7, 3.6))
+                    ax = fig.subplots()
+                    draw(ax)
+                    ax.set_title(title)
+                    ax.grid(alpha=0.3)
+                _save(fig, path)
+                plt.close(fig)
+                if kept is not None:
+                    copy_file(path, kept)
             written.append(path)
             lines.extend([f"![{title}](figures/{name}.png)", ""])
 

@@ -1,9 +1,11 @@
 """The report's figures: drawn once on a padded canvas and cropped to what is drawn, as
-``savefig(bbox_inches="tight")`` would crop them."""
+``savefig(bbox_inches="tight")`` would crop them; copied, not drawn, when the figure store holds
+one drawn from the same values."""
 
 from __future__ import annotations
 
 import numpy as np
+import pyarrow as pa
 import pytest
 
 mpl = pytest.importorskip("matplotlib")
@@ -38,3 +40,59 @@ def test_a_figure_is_cropped_as_a_tight_bounding_box_would_crop_it(tmp_path, not
     h, w = min(one.shape[0], tight.shape[0]), min(one.shape[1], tight.shape[1])
     # the same picture: a pixel's shift at most (the crop rounds where savefig snaps)
     assert np.mean(np.abs(one[:h, :w] - tight[:h, :w]) > 0.1) < 0.05
+
+
+def _tables(errors_after: float) -> dict:
+    """A ``rests`` table (the positions figure) and a ``validation`` table (the turn errors)."""
+    from imupipe.schemas import SCHEMA_KEY
+
+    u = np.random.default_rng(0).normal(size=(12, 3))
+    rests = pa.table({"accel_mean": pa.FixedSizeListArray.from_arrays(pa.array(u.ravel()), 3)},
+                     metadata={SCHEMA_KEY: b"rests"})
+    turns = pa.table({"angle_error_before_deg": np.linspace(-0.3, 0.3, 8),
+                      "angle_error_after_deg": np.full(8, errors_after)},
+                     metadata={SCHEMA_KEY: b"validation", b"imupipe.summary": b'{"tolerance_deg": 0.1}'})
+    return {"rests.rests": rests, "validate.validation": turns}
+
+
+def test_a_figure_drawn_before_from_the_same_values_is_copied_not_drawn(tmp_path, monkeypatch):
+    """With a figure store (``imupipe run``'s cache), a report redrawn because one table changed
+    draws only the figures that read it and copies the others; without one, every figure is drawn."""
+    from imupipe.report import exporter
+
+    drawn = []
+    save = exporter._save
+    monkeypatch.setattr(exporter, "_save", lambda fig, path: (drawn.append(path.name), save(fig, path)))
+    context = {"session": "s", "figure_store": str(tmp_path / "store")}
+
+    exporter.REPORT.export(_tables(0.01), context, tmp_path / "a")
+    assert sorted(drawn) == ["positions.png", "turn_errors.png"]
+    drawn.clear()
+    exporter.REPORT.export(_tables(0.02), context, tmp_path / "b")  # the validation changed
+    assert drawn == ["turn_errors.png"]
+    same = [(tmp_path / d / "figures" / "positions.png").read_bytes() for d in "ab"]
+    assert same[0] == same[1]
+    assert (tmp_path / "a" / "figures" / "turn_errors.png").read_bytes() != \
+        (tmp_path / "b" / "figures" / "turn_errors.png").read_bytes()
+    drawn.clear()
+    exporter.REPORT.export(_tables(0.02), {"session": "s"}, tmp_path / "c")  # no store: drawn
+    assert sorted(drawn) == ["positions.png", "turn_errors.png"]
+
+
+def test_a_figure_key_follows_every_value_its_drawing_holds():
+    from imupipe.report.exporter import figure_key
+
+    def key_of(value, title="t"):
+        return figure_key("f", title, False, lambda ax, v=value: None)
+
+    a, b = np.arange(5.0), np.arange(5.0)
+    assert key_of(b) == key_of(a)
+    b[2] = 7.0
+    assert key_of(b) != key_of(a)
+    assert key_of(a, "other title") != key_of(a)
+    assert key_of(a.astype(np.float32)) != key_of(a)
+    table = pa.table({"x": [1.0, 2.0]}, metadata={b"k": b"1"})
+    assert key_of(table.replace_schema_metadata({b"k": b"2"})) != key_of(table)
+    assert key_of(pa.table({"x": [1.0, 2.5]}, metadata={b"k": b"1"})) != key_of(table)
+    assert key_of({"doc": [1, 2.0, "x"]}) != key_of({"doc": [1, 2, "x"]})
+    assert key_of(plt) is None  # not digested: always drawn
