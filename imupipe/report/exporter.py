@@ -14,6 +14,7 @@ from there instead of drawn.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import json
@@ -132,6 +133,16 @@ def figure_key(name: str, title: str, panels: bool, draw) -> str | None:
     return h.hexdigest()
 
 
+def _copied(kept: Path, path: Path) -> bool:
+    """``path`` becomes a copy of the figure store's ``kept``, drawn before from the same values;
+    False when the store does not hold it (or it could not be read: the figure is drawn again)."""
+    try:
+        copy_file(kept, path)
+    except OSError:
+        return False
+    return True
+
+
 def _summary(table: pa.Table) -> dict:
     return json.loads((table.schema.metadata or {}).get(b"imupipe.summary", b"{}"))
 
@@ -241,9 +252,7 @@ class ReportExporter:
             path = under(figs, f"{safe_name(name, 'figure')}.png")
             key = figure_key(name, title, panels, draw) if store else None
             kept = None if key is None else Path(store) / key[:2] / f"{key}.png"
-            if kept is not None and kept.is_file():  # drawn before from the same values
-                copy_file(kept, path)
-            else:
+            if not (kept is not None and _copied(kept, path)):
                 if panels:
                     fig = _new_figure(plt, (8, 7), suptitle=title)
                     draw(fig)
@@ -256,7 +265,8 @@ class ReportExporter:
                 _save(fig, path)
                 plt.close(fig)
                 if kept is not None:
-                    copy_file(path, kept)
+                    with contextlib.suppress(OSError):  # a store it cannot write only costs a redraw
+                        copy_file(path, kept)
             written.append(path)
             lines.extend([f"![{title}](figures/{name}.png)", ""])
 

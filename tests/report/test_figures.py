@@ -77,6 +77,12 @@ def test_a_figure_drawn_before_from_the_same_values_is_copied_not_drawn(tmp_path
     drawn.clear()
     exporter.REPORT.export(_tables(0.02), {"session": "s"}, tmp_path / "c")  # no store: drawn
     assert sorted(drawn) == ["positions.png", "turn_errors.png"]
+    drawn.clear()
+    (tmp_path / "not_a_folder").write_text("")  # a store that cannot be read or written: drawn
+    exporter.REPORT.export(_tables(0.02), {"session": "s", "figure_store": str(tmp_path / "not_a_folder")},
+                           tmp_path / "d")
+    assert sorted(drawn) == ["positions.png", "turn_errors.png"]
+    assert (tmp_path / "d" / "report.md").is_file()
 
 
 def test_a_figure_key_follows_every_value_its_drawing_holds():
