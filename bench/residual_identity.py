@@ -47,6 +47,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -128,12 +129,19 @@ def statistical_change(name: str, ref: dict, new: dict) -> float:
     return math.inf if dchi2 is None else dchi2 / math.sqrt(2 * stats["dof"][0])
 
 
+def allowance(spreads: Iterable[float], rtol: float) -> float:
+    """max(rtol, FLOOR_FACTOR x the largest finite spread): what rounding alone moves a number by
+    (``spreads``: the new code's differences between this machine's BLAS kernel and others; a
+    kernel that changed the number's shape, inf, sets no floor)."""
+    return max(rtol, FLOOR_FACTOR * max((d for d in spreads if math.isfinite(d)), default=0.0))
+
+
 def compare_calibrations(ref: dict, new: dict, other_kernels: list[dict],
                          rtol: float) -> list[tuple[float, float, str, str]]:
-    """Per field: (difference, allowed, name, by what), allowed = max(rtol, FLOOR_FACTOR x the
-    field's largest spread between ``new`` and ``other_kernels``, the same code's runs on other
-    BLAS kernels); a field within ``STAT_FRACTION`` of its statistical spread is allowed its
-    difference. The session's path is not compared."""
+    """Per field: (difference, allowed, name, by what), allowed = ``allowance`` of the field's
+    spreads between ``new`` and ``other_kernels`` (the same code's runs on other BLAS kernels); a
+    field within ``STAT_FRACTION`` of its statistical spread is allowed its difference. The
+    session's path is not compared."""
     fr, fn = (numeric_fields({k: v for k, v in d.items() if k != "session"}) for d in (ref, new))
     fk = [numeric_fields(d) for d in other_kernels]
     out = []
@@ -141,8 +149,8 @@ def compare_calibrations(ref: dict, new: dict, other_kernels: list[dict],
         if name not in fr or name not in fn:
             out.append((math.inf, rtol, f"{name} only in one", "rtol"))
             continue
-        floor = max((field_difference(fn[name], f[name]) for f in fk if name in f), default=0.0)
-        d, allowed = field_difference(fr[name], fn[name]), max(rtol, FLOOR_FACTOR * floor)
+        d = field_difference(fr[name], fn[name])
+        allowed = allowance((field_difference(fn[name], f[name]) for f in fk if name in f), rtol)
         how = "kernels" if allowed > rtol else "rtol"
         if d > allowed and statistical_change(name, fr, fn) <= STAT_FRACTION:
             allowed, how = d, "statistical"
@@ -236,15 +244,14 @@ def compare_maps(ref: tuple[dict, dict], new: tuple[dict, dict]) -> list[tuple[f
 
 def judge_map(diffs: list[tuple[float, str]], spreads: list[list[tuple[float, str]]],
               rtol: float) -> list[tuple[float, float, str]]:
-    """Per number: (difference, allowed, name), allowed = max(rtol, FLOOR_FACTOR x its largest
-    finite spread in ``spreads``: the new code's differences, by ``compare_maps``, between this
-    machine's kernel and each other kernel)."""
-    floor: dict[str, float] = {}
+    """Per number: (difference, allowed, name), allowed = ``allowance`` of its spreads in
+    ``spreads`` (the new code's differences, by ``compare_maps``, between this machine's kernel
+    and each other kernel)."""
+    by_name: dict[str, list[float]] = {}
     for kernel in spreads:
         for d, name in kernel:
-            if math.isfinite(d):
-                floor[name] = max(floor.get(name, 0.0), d)
-    return [(d, max(rtol, FLOOR_FACTOR * floor.get(name, 0.0)), name) for d, name in diffs]
+            by_name.setdefault(name, []).append(d)
+    return [(d, allowance(by_name.get(name, ()), rtol), name) for d, name in diffs]
 
 
 def main() -> None:

@@ -65,6 +65,8 @@ def test_a_field_without_a_statistical_spread_is_allowed_ten_times_the_kernels_s
     other_kernel = _changed(gyro__covariance=[[4e-10 * (1 + 1e-6) * (1 + 2e-7), 1e-11], [1e-11, 4e-10]])
     assert _failing(b, moved, [other_kernel]) == []
     assert _failing(b, moved, [copy.deepcopy(moved)]) == ["/gyro/covariance"]  # a kernel that moved nothing
+    reshaped = _changed(gyro__covariance=[4e-10, 1e-11])  # a kernel that changed its shape sets no floor
+    assert _failing(b, moved, [reshaped]) == ["/gyro/covariance"]
 
 
 def test_a_map_number_is_allowed_ten_times_its_spread_over_kernels():
