@@ -50,7 +50,7 @@ class StreamSpec(_Model):
 
     @model_validator(mode="after")
     def _consistent(self) -> StreamSpec:
-        axes = ["temperature"] if self.stream == "temperature" else ["x", "y", "z"]
+        axes = self.axes()
         if self.unit is not None and self.unit not in UNITS[self.stream]:
             raise ValueError(f"unit {self.unit!r} does not fit stream {self.stream!r}; "
                              f"known: {', '.join(UNITS[self.stream])}")

@@ -27,7 +27,7 @@ import pyarrow as pa
 
 from .. import schemas
 from ..errors import require
-from ..io import atomic_path, copy_file, write_text
+from ..io import atomic_path, copy_file, table_digest, write_text
 from ..paths import safe_name, under
 from . import html, noise_figures, residual_figures, segment_figures
 
@@ -94,14 +94,8 @@ def _feed(h, x) -> None:
     elif isinstance(x, np.ndarray) and not x.dtype.hasobject:
         h.update(f"a{x.dtype.str}{x.shape}".encode())
         h.update(np.ascontiguousarray(x).data)
-    elif isinstance(x, pa.Table):  # its schema with the metadata, then every buffer (equal tables
-        h.update(b"t")              # chunked or sliced otherwise differ: a redraw, never a wrong figure)
-        h.update(x.schema.serialize())
-        for column in x.columns:
-            for chunk in column.chunks:
-                h.update(f"c{chunk.offset},{len(chunk)},{chunk.null_count}".encode())
-                for buf in chunk.buffers():
-                    h.update(b"-" if buf is None else buf)
+    elif isinstance(x, pa.Table):
+        h.update(b"t" + table_digest(x).encode())
     elif isinstance(x, dict):
         h.update(b"{")
         for k in sorted(x, key=repr):
@@ -118,13 +112,13 @@ def _feed(h, x) -> None:
 
 
 def figure_key(name: str, title: str, panels: bool, draw) -> str | None:
-    """What a figure is drawn from: the report's code and version, matplotlib's, its name and
-    title, and the values its ``draw`` holds (defaults and closure); None when one of them is of
-    a kind ``_feed`` does not digest (the figure is then always drawn)."""
+    """What a figure is drawn from: the report's code, matplotlib's version, its name and title,
+    and the values its ``draw`` holds (defaults and closure); None when one of them is of a kind
+    ``_feed`` does not digest (the figure is then always drawn)."""
     import matplotlib
 
     h = hashlib.sha256(_report_code())
-    h.update(repr((ReportExporter.version, matplotlib.__version__, name, title, panels, DPI, PAD_IN)).encode())
+    h.update(repr((matplotlib.__version__, name, title, panels)).encode())
     try:
         for value in (*(draw.__defaults__ or ()), *(c.cell_contents for c in draw.__closure__ or ())):
             _feed(h, value)
