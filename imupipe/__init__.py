@@ -1,8 +1,3 @@
 """imupipe: calibrate MEMS IMUs from recorded sessions and explain what the model gets wrong."""
 
-from importlib.metadata import PackageNotFoundError, version
-
-try:
-    __version__ = version("imupipe")
-except PackageNotFoundError:  # running from a source tree that was never installed
-    __version__ = "0.0.0+unknown"
+__version__ = "0.1.0"  # the one place it is set (pyproject.toml reads it)
