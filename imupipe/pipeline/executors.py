@@ -96,7 +96,8 @@ class DaskExecutor:
     ``MALLOC_TRIM_THRESHOLD_=65536`` (returning freed memory to the OS that eagerly
     made the solvers' many temporary arrays page-fault again: 1.4-1.9x slower;
     a value the user exported is kept), nor the workers' statistical profiler and
-    GIL monitor (for the dashboard, which a batch does not show). Dask's own log lines below warnings are
+    GIL monitor (for the dashboard, which a batch does not show), and they poll their event loop,
+    the system and their memory less often. Dask's own log lines below warnings are
     not shown unless imupipe's logger is set to INFO or DEBUG.
     """
 
@@ -163,6 +164,13 @@ def _dask_config():
         # are for Dask's dashboard, which a batch does not show
         "distributed.worker.profile.enabled": False,
         "distributed.admin.system-monitor.gil.enabled": False,
+        # every server (scheduler, nannies, workers) polls its event loop's delay every 20 ms and
+        # the system every 500 ms, and each memory manager checks every 100 ms; a batch of
+        # minute-long jobs needs none of that so often (0.5 s CPU of a 4-session batch's 20)
+        "distributed.admin.tick.interval": "1s",
+        "distributed.admin.system-monitor.interval": "10s",
+        "distributed.admin.system-monitor.disk": False,
+        "distributed.worker.memory.monitor-interval": "1s",
     }):
         yield
 

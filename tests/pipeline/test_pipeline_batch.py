@@ -191,3 +191,17 @@ def test_dask_workers_start_without_malloc_trim_and_quietly(monkeypatch, caplog)
     assert got[1] is not None  # the variable lookup did run in a Dask worker
     loud = [r for r in caplog.records if r.name.startswith("distributed") and r.levelno < logging.WARNING]
     assert loud == []
+
+
+def test_dask_workers_poll_their_loop_system_and_memory_seldom(monkeypatch):
+    """Dask's 20 ms loop ticks and 100-500 ms monitors cost a batch about 0.5 s CPU in 20."""
+    pytest.importorskip("distributed")
+    import dask
+
+    from imupipe.pipeline.executors import SCHEDULER_ENV, DaskExecutor
+
+    monkeypatch.delenv(SCHEDULER_ENV, raising=False)
+    keys = ["distributed.admin.tick.interval", "distributed.admin.system-monitor.interval",
+            "distributed.worker.memory.monitor-interval", "distributed.worker.profile.enabled"]
+    assert DaskExecutor().map(dask.config.get, keys, 1) == ["1s", "10s", "1s", False]
+    assert dask.config.get(keys[0]) != "1s"  # the caller's configuration is left as it was
