@@ -32,8 +32,8 @@ nothing heavy itself, so the floor a forked child inherits stays small (printed)
 BLAS runs with imupipe's default (one thread, ``imupipe/threads.py``). Wall clock
 suffers when other processes share the cores; CPU is the steadier measure of work.
 
-``--pipeline FILE`` runs another pipeline; ``--without-map`` runs the default one
-without the residual map stage (the calibration's own cost).
+``--pipeline FILE`` runs another pipeline; ``--without-map`` runs the shipped ``calibrate``
+one: the default without its residual map stage (the calibration's own cost).
 
 Usage: ``python bench/scaling.py [--hours 0.5 1 2 4] [--imu realistic|default] [--keep DIR]
 [--pipeline FILE | --without-map] [--runs 1] [--ingest-runs 5]``
@@ -109,24 +109,6 @@ def median_of(runs: int, cmd: list[str], fresh: Path, **kw) -> dict:
     return sorted(results, key=lambda r: r["cpu"])[len(results) // 2]
 
 
-def without_map(path: Path) -> Path:
-    """A copy of the default pipeline without the ``map`` stage and its exports."""
-    lines, skip = [], False
-    text = (Path(__file__).resolve().parents[1] / "pipelines" / "default.toml").read_text()
-    for line in text.splitlines():
-        if line.startswith("[stages.map"):
-            skip = True
-            continue
-        if skip and line.startswith("["):
-            skip = False
-        if not skip:
-            lines.append(line)
-    out = "\n".join(lines).replace(', "map.map", "map.samples"', "") + "\n"
-    assert "map." not in out.split("[export]")[1], "the default pipeline's map exports moved"
-    path.write_text(out)
-    return path
-
-
 def null_walks(residual_map: Path) -> str:
     """The bias walks of the map's null model ("gyro+accel", "none"; "-" without a map)."""
     if not residual_map.exists():
@@ -151,7 +133,7 @@ def main() -> None:
     ap.add_argument("--keep", type=Path, default=None, help="keep sessions and outputs here")
     ap.add_argument("--pipeline", type=Path, default=None, help="pipeline TOML (default: the built-in)")
     ap.add_argument("--without-map", action="store_true",
-                    help="the default pipeline without its residual map stage")
+                    help="the calibrate pipeline: the default without its residual map stage")
     ap.add_argument("--runs", type=int, default=1, help="imupipe run processes per length (their median)")
     ap.add_argument("--ingest-runs", type=int, default=5, help="imupipe ingest processes per length (their median)")
     args = ap.parse_args()
@@ -159,7 +141,7 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     pipeline = ["--pipeline", str(args.pipeline)] if args.pipeline else []
     if args.without_map:
-        pipeline = ["--pipeline", str(without_map(work / "default_without_map.toml"))]
+        pipeline = ["--pipeline", "calibrate"]
     env = dict(os.environ)
     imupipe = [sys.executable, "-m", "imupipe"]
     rows = []

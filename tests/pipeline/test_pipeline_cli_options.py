@@ -103,6 +103,20 @@ def test_pipeline_by_name_and_pipelines_listing(tmp_path, capsys, toy_registry):
         assert line.startswith(name) and len(line.split(None, 1)[1]) > 10
 
 
+def test_calibrate_pipeline_is_the_default_without_its_map():
+    """Shipped for archives that want the calibration alone: it must not drift from the default."""
+    import tomllib
+
+    shipped = shipped_pipelines()
+    default, calibrate = (tomllib.loads(shipped[n].read_text()) for n in ("default", "calibrate"))
+    map_stages = [k for k, v in default["stages"].items() if v["uses"] == "map_residuals"]
+    assert map_stages and calibrate["stages"] == {
+        k: v for k, v in default["stages"].items() if k not in map_stages}
+    assert calibrate["export"] == {kind: [o for o in outs if o.split(".")[0] not in map_stages]
+                                   for kind, outs in default["export"].items()}
+    assert calibrate.get("input") == default.get("input")
+
+
 def test_device_option_picks_one_imu(tmp_path, toy_registry, toy_pipeline, monkeypatch):
     mcap_writer = pytest.importorskip("imupipe.writers.mcap")
     import pipeline_real_readers
