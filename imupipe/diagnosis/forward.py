@@ -802,9 +802,9 @@ class JointModel:
                 rows, cols = (np.concatenate(x) for x in zip(*map(entries, range(len(trip))), strict=True))
                 return sp.csr_matrix((np.concatenate([t[2] for t in trip]), (rows, cols)), shape=(N, Pl))
             n = len(key)
-            indices[pos:pos + n] = key % width
-            first = int(key[0] // width)
-            counts[first:first + int(key[-1] // width - first) + 1] += np.bincount(key // width - first)
+            row, indices[pos:pos + n] = np.divmod(key, width)  # one integer division for both
+            first = int(row[0])
+            counts[first:int(row[-1]) + 1] += np.bincount(row - first)
             source = np.concatenate([np.arange(starts[i], starts[i + 1]) for i in group])
             place[source[order]] = np.arange(pos, pos + n, dtype=idx)
             pos += n
