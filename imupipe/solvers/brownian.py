@@ -47,7 +47,7 @@ def boundaries(t_start: np.ndarray, t_end: np.ndarray) -> tuple[np.ndarray, np.n
 
 def _banded_add(ab: np.ndarray, i: np.ndarray, j: np.ndarray, v: np.ndarray) -> None:
     """Add ``v`` at (i, j) with i >= j into lower banded storage ``ab`` (u+1, n); no (i, j) twice
-    (``np.add.at`` would be needed then, and costs a third of a walk's likelihood)."""
+    in one call (a plain in-place add: ``np.add.at``, which allows repeats, is slower)."""
     ab[i - j, j] += v
 
 
