@@ -135,6 +135,9 @@ def chi2_status(chi2_per_dof: float, dof: float) -> str:
     return "pass"
 
 
+JOINT_FIT, RESIDUAL_MAP = "joint fit", "residual map"  # how a chi2 check's detail starts
+
+
 def fit_checks(calibration: Mapping[str, Any], maps: list[dict]) -> list[Check]:
     blocks: list[tuple[str, float, float]] = []
     for sensor in ("accel", "gyro"):
@@ -142,7 +145,7 @@ def fit_checks(calibration: Mapping[str, Any], maps: list[dict]) -> list[Check]:
         if isinstance(joint, Mapping):
             for name, b in (joint.get("blocks") or {}).items():
                 if b.get("chi2_per_dof") is not None and b.get("dof"):
-                    blocks.append((f"joint fit {name}", float(b["chi2_per_dof"]), float(b["dof"])))
+                    blocks.append((f"{JOINT_FIT} {name}", float(b["chi2_per_dof"]), float(b["dof"])))
             saturated = int(joint.get("turns_saturated") or 0)
             break  # both triads carry the same joint fit
     else:
@@ -151,16 +154,18 @@ def fit_checks(calibration: Mapping[str, Any], maps: list[dict]) -> list[Check]:
         for b in doc.get("blocks", []):
             if b.get("chi2_per_dof") is not None and b.get("dof"):
                 name = b.get("block") or f"{b.get('sensor')} {b.get('kind')}"
-                blocks.append((f"residual map {name}", float(b["chi2_per_dof"]), float(b["dof"])))
+                blocks.append((f"{RESIDUAL_MAP} {name}", float(b["chi2_per_dof"]), float(b["dof"])))
     out = []
+    # a pipeline without the map (calibrate.toml) must not send the reader to it
+    see = "see the residual map" if maps else "the default pipeline's residual map shows where"
     for name, c, dof in blocks:
         status = chi2_status(c, dof)
         spread = np.sqrt(2.0 / dof)
         what = {"pass": "within its spread",
                 "warn": f"beyond its expected spread: residuals {np.sqrt(c):.2g}x the noise the fit "
-                        "assumed, its uncertainties understated (unmodelled physics? see the residual map)",
+                        f"assumed, its uncertainties understated (unmodelled physics? {see})",
                 "fail": "far beyond the noise: the model does not describe the recording "
-                        "(swapped or sign-flipped axes? wrong units? see the residual map)"}[status]
+                        f"(swapped or sign-flipped axes? wrong units? {see})"}[status]
         if status == "warn" and c < 1:
             what = "below its expected spread: the noise model overstates the noise"
         out.append(Check("chi2", status, f"{name}: chi2/dof {c:.3g} over {dof:.0f} dof "

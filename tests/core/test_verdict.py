@@ -9,7 +9,8 @@ import pyarrow as pa
 import pytest
 
 from imupipe import schemas
-from imupipe.verdict import chi2_status, judge, strict_failure, verdict_lines
+from imupipe.report.exporter import verdict_section
+from imupipe.verdict import chi2_status, fit_checks, judge, strict_failure, verdict_lines
 
 
 def triad(M=None, b0=(0.0, 0.0, 0.0), sigma=True, **extra) -> dict:
@@ -58,6 +59,20 @@ def test_huge_turn_chi2_fails_and_strict_counts_it():
     v = judge(doc(blocks={"turn": {"chi2": 1.8e5 * 60, "dof": 60.0, "chi2_per_dof": 1.8e5}}))
     assert v["status"] == "fail" and "turn: chi2/dof 1.8e+05" in reasons(v)
     assert strict_failure([v]) and verdict_lines(v)[1].startswith("  fail:")
+
+
+def test_without_the_residual_map_the_verdict_and_report_do_not_point_to_it():
+    """calibrate.toml has the joint fit and no map: nothing may send the reader to a map it lacks."""
+    blocks = {"gyro_rest": {"chi2": 3000.0, "dof": 1000.0, "chi2_per_dof": 3.0}}
+    alone = judge(doc(blocks=blocks))
+    assert alone["status"] == "warn" and "see the residual map" not in reasons(alone)
+    assert "the default pipeline's residual map shows where" in reasons(alone)
+    mapped = fit_checks(doc(blocks=blocks), [{"blocks": [{"block": "gyro_rest", "chi2_per_dof": 3.0, "dof": 1000}]}])
+    assert all("see the residual map" in c.detail for c in mapped)
+    assert any("Not checked: every sample" in line for line in verdict_section(alone))
+    assert not any("Not checked" in line for line in verdict_section(
+        {"status": "warn", "checks": [c.to_dict() for c in mapped]}))
+    assert not any("Not checked" in line for line in verdict_section(judge(doc())))  # no joint fit
 
 
 def test_left_handed_accel_fails():
