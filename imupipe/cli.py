@@ -324,10 +324,18 @@ def _is_write_refused(exc: BaseException) -> bool:
         errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.ENAMETOOLONG)
 
 
+# numpy asks the kernel for transparent huge pages on its large arrays; where the kernel then
+# compacts memory synchronously on the fault (THP defrag "madvise", the common default), a fresh
+# page costs more than the larger pages save (docs/pipelines.md#huge-pages). Set before numpy is
+# imported, so batch workers inherit it; a value the user set is kept.
+NUMPY_HUGEPAGE_ENV = "NUMPY_MADVISE_HUGEPAGE"
+
+
 def main(argv: list[str] | None = None) -> int:
     import os
     import warnings
 
+    os.environ.setdefault(NUMPY_HUGEPAGE_ENV, "0")
     args = _parser().parse_args(argv)
     handler = logging.StreamHandler()
     handler.setLevel(logging.WARNING)  # also for libraries that raise their own loggers' levels

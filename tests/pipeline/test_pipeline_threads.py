@@ -73,3 +73,18 @@ def test_a_batch_job_runs_under_its_limit(monkeypatch, tmp_path, toy_pipeline, s
     assert api.run_job(api.Job(str(session), "s1", str(toy_pipeline), str(tmp_path / "out"),
                                TOY_SPEC, blas_threads=2)).status == "ok"
     assert seen[-1] == [2]  # threadpoolctl raises OpenBLAS's count too
+
+
+@pytest.mark.parametrize("preset, expected", [(None, False), ("1", True)])
+def test_the_command_turns_numpys_huge_pages_off_unless_the_user_set_them(preset, expected):
+    """numpy reads NUMPY_MADVISE_HUGEPAGE when it is imported: the command sets it first."""
+    probe = ("import imupipe.cli as cli, sys; cli.main(['pipelines']); import numpy as np; "
+             "get = getattr(np._core.multiarray, '_get_madvise_hugepage', None); "
+             "print('unknown' if get is None else get(), file=sys.stderr)")
+    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
+    if preset is not None:
+        env["NUMPY_MADVISE_HUGEPAGE"] = preset
+    got = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=True)
+    if got.stderr.strip() == "unknown":
+        pytest.skip("this numpy does not say whether it asks for huge pages")
+    assert got.stderr.strip() == str(expected)
