@@ -69,6 +69,8 @@ VALIDATION_ACCEPTED_FAIL = 0.5  # with at least VALIDATION_MIN_TURNS informative
 VALIDATION_MIN_TURNS = 5
 EVENT_STATUS = {"splice": "fail", "gap": "warn", "shock": "warn", "saturation": "warn"}
 PRINTED_REASONS = 6  # under each path ``imupipe run`` prints; all are in calibration.json
+NO_MAP = ("every sample against the calibrated model: this pipeline has no residual map (the checks judge "
+          "the joint fit's rests and turns; the default pipeline has the map)")
 ORDER = {"pass": 0, "warn": 1, "fail": 2}
 STATUSES = tuple(ORDER)
 
@@ -95,7 +97,8 @@ def judge(calibration: Mapping[str, Any], tables: Mapping[str, pa.Table] | None 
         if t is not None:
             by_schema.setdefault(schemas.schema_of(t) or "", []).append(t)
     checks: list[Check] = []
-    checks += fit_checks(calibration, [_map_doc(t) for t in by_schema.get("residual_map", [])])
+    maps = [_map_doc(t) for t in by_schema.get("residual_map", [])]
+    checks += fit_checks(calibration, maps)
     checks += validation_checks(by_schema.get("validation", []), by_schema.get("control_errors", []))
     checks += value_checks(calibration)
     checks += frame_checks(calibration)
@@ -103,7 +106,10 @@ def judge(calibration: Mapping[str, Any], tables: Mapping[str, pa.Table] | None 
     checks += coverage_checks(by_schema.get("rests", []), calibration.get("accel"))
     checks += drift_checks(by_schema.get("rests", []), calibration.get("accel"))
     checks += stream_checks(facts or {}, by_schema.get("events", []))
-    return summarise(checks)
+    verdict = summarise(checks)
+    if _joint_fit(calibration) is not None and not maps:  # calibrate.toml: said, not a warning
+        verdict["not_checked"] = [NO_MAP]
+    return verdict
 
 
 def summarise(checks: list[Check]) -> dict[str, Any]:
@@ -135,26 +141,27 @@ def chi2_status(chi2_per_dof: float, dof: float) -> str:
     return "pass"
 
 
-JOINT_FIT, RESIDUAL_MAP = "joint fit", "residual map"  # how a chi2 check's detail starts
+def _joint_fit(calibration: Mapping[str, Any]) -> Mapping[str, Any] | None:
+    """The joint fit's details (both triads carry the same), None without one."""
+    for sensor in ("accel", "gyro"):
+        joint = (calibration.get(sensor) or {}).get("joint")
+        if isinstance(joint, Mapping):
+            return joint
+    return None
 
 
 def fit_checks(calibration: Mapping[str, Any], maps: list[dict]) -> list[Check]:
     blocks: list[tuple[str, float, float]] = []
-    for sensor in ("accel", "gyro"):
-        joint = (calibration.get(sensor) or {}).get("joint")
-        if isinstance(joint, Mapping):
-            for name, b in (joint.get("blocks") or {}).items():
-                if b.get("chi2_per_dof") is not None and b.get("dof"):
-                    blocks.append((f"{JOINT_FIT} {name}", float(b["chi2_per_dof"]), float(b["dof"])))
-            saturated = int(joint.get("turns_saturated") or 0)
-            break  # both triads carry the same joint fit
-    else:
-        saturated = 0
+    joint = _joint_fit(calibration) or {}
+    for name, b in (joint.get("blocks") or {}).items():
+        if b.get("chi2_per_dof") is not None and b.get("dof"):
+            blocks.append((f"joint fit {name}", float(b["chi2_per_dof"]), float(b["dof"])))
+    saturated = int(joint.get("turns_saturated") or 0)
     for doc in maps:
         for b in doc.get("blocks", []):
             if b.get("chi2_per_dof") is not None and b.get("dof"):
                 name = b.get("block") or f"{b.get('sensor')} {b.get('kind')}"
-                blocks.append((f"{RESIDUAL_MAP} {name}", float(b["chi2_per_dof"]), float(b["dof"])))
+                blocks.append((f"residual map {name}", float(b["chi2_per_dof"]), float(b["dof"])))
     out = []
     # a pipeline without the map (calibrate.toml) must not send the reader to it
     see = "see the residual map" if maps else "the default pipeline's residual map shows where"

@@ -29,7 +29,6 @@ from .. import schemas
 from ..errors import require
 from ..io import atomic_path, copy_file, table_digest, write_text
 from ..paths import safe_name, under
-from ..verdict import JOINT_FIT, RESIDUAL_MAP
 from . import html, noise_figures, residual_figures, segment_figures
 
 
@@ -143,8 +142,8 @@ def _summary(table: pa.Table) -> dict:
 
 
 def verdict_section(verdict: Mapping[str, Any] | None) -> list[str]:
-    """Markdown: the verdict (``imupipe.verdict``) and its reasons, then every check made, and that
-    a joint fit without the residual map leaves the samples unchecked."""
+    """Markdown: the verdict (``imupipe.verdict``) and its reasons, then every check made and
+    what was not checked."""
     if not verdict:
         return []
     lines = [f"## Verdict: {verdict.get('status', '?')}", ""]
@@ -153,11 +152,8 @@ def verdict_section(verdict: Mapping[str, Any] | None) -> list[str]:
     if checks:
         lines += ["", "| check | status | detail |", "|---|---|---|"]
         lines += [f"| {c['check']} | {c['status']} | {c['detail']} |" for c in checks]
-    details = [c["detail"] for c in checks]
-    if any(d.startswith(JOINT_FIT) for d in details) and not any(d.startswith(RESIDUAL_MAP) for d in details):
-        lines += ["", ("Not checked: every sample against the calibrated model (this pipeline has no residual "
-                       "map): the checks above judge the joint fit's rests and turns. The default pipeline has it; "
-                       "run into the same output folder after `--pipeline calibrate`, it computes only the map.")]
+    for what in verdict.get("not_checked", []):
+        lines += ["", f"Not checked: {what}."]
     return [*lines, ""]
 
 

@@ -67,6 +67,7 @@ def test_without_the_residual_map_the_verdict_and_report_do_not_point_to_it():
     alone = judge(doc(blocks=blocks))
     assert alone["status"] == "warn" and "see the residual map" not in reasons(alone)
     assert "the default pipeline's residual map shows where" in reasons(alone)
+    assert alone["not_checked"] and "not_checked" not in judge(doc())  # said only after a joint fit
     mapped = fit_checks(doc(blocks=blocks), [{"blocks": [{"block": "gyro_rest", "chi2_per_dof": 3.0, "dof": 1000}]}])
     assert all("see the residual map" in c.detail for c in mapped)
     assert any("Not checked: every sample" in line for line in verdict_section(alone))
