@@ -7,6 +7,7 @@ import hashlib
 import os
 import shutil
 import tempfile
+import weakref
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -106,12 +107,23 @@ def file_digest(path: Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
+_DIGESTS: dict[int, tuple[weakref.ref, str]] = {}  # id -> (the table, its digest): tables are immutable
+
+
 def table_digest(table: pa.Table) -> str:
-    """sha256 of a table's content (schema incl. metadata, and data), independent of chunking."""
+    """sha256 of a table's content (schema incl. metadata, and data), independent of chunking;
+    remembered while the table lives (a stage's output is digested when stored, and again by
+    the exports and figures keyed by it)."""
+    known = _DIGESTS.get(id(table))
+    if known is not None and known[0]() is table:
+        return known[1]
     sink = _Hashing()
     with ipc.new_stream(pa.PythonFile(sink, mode="w"), table.schema) as writer:
         writer.write_table(table.combine_chunks())
-    return sink.sha256.hexdigest()
+    digest = sink.sha256.hexdigest()
+    key = id(table)
+    _DIGESTS[key] = (weakref.ref(table, lambda _, key=key: _DIGESTS.pop(key, None)), digest)
+    return digest
 
 
 def remove(path: Path) -> None:

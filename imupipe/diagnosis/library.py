@@ -428,13 +428,16 @@ def _stable_terms(B: np.ndarray, h: np.ndarray, g_b: np.ndarray) -> list[tuple[i
 
 def _with_windows(lin: Linearised, lib: _Library, scored: list) -> list[StructureCell]:
     """The cells with the time windows where their fitted terms concentrate (a second pass over
-    the library's chunks)."""
+    the library's chunks). A chunk's consecutive rows at one time (a sample's three axes) are
+    summed first: ``windows`` only sums them too, and the peak of the map is here."""
     if not scored:
         return []
     W = np.column_stack([w for _, w in scored])
     t, contrib = [], []
     for rows, C in lib.chunks():
-        t.append(lin.rows.t[rows])
-        contrib.append((C @ W) ** 2)
+        tc = lin.rows.t[rows]
+        first = np.flatnonzero(np.r_[True, tc[1:] != tc[:-1]])
+        t.append(tc[first])
+        contrib.append(np.add.reduceat((C @ W) ** 2, first, axis=0))
     t, contrib = np.concatenate(t), np.vstack(contrib)
     return [dataclasses.replace(cell, windows=windows(t, contrib[:, j])) for j, (cell, _) in enumerate(scored)]

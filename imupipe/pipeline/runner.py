@@ -19,7 +19,7 @@ import logging
 import re
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
@@ -80,6 +80,12 @@ class SessionRun:
     records: dict[str, StageRecord] = field(default_factory=dict)
     _tables: dict[str, pa.Table] = field(default_factory=dict)
     source: _Source | None = None
+
+    def keep(self, stage: str, outputs: Mapping[str, pa.Table]) -> None:
+        """The outputs a stage just returned (and the cache stored): later stages and the exports
+        read them as they are, not again from the cache (a long recording's per-sample table:
+        its bytes read, verified and digested once more)."""
+        self._tables.update({str(Ref(stage, port)): table for port, table in outputs.items()})
 
     def table(self, ref: Ref) -> pa.Table | None:
         """An output of a stage that ran or was cached; None if the stage was skipped."""
@@ -270,6 +276,7 @@ def _run_node(node: Node, run: SessionRun, source: _Source, registry: Registry) 
     seconds = time.perf_counter() - t0
     _check_outputs(node, outputs, where)
     stored = run.cache.store(parts, {p: outputs[p] for p in node.stage.outputs}, node.key, said)
+    run.keep(node.key, {p: outputs[p] for p in node.stage.outputs})
     _observe(registry, "imupipe_after_stage", stage=node.key, key=key, cached=False,
              seconds=seconds)
     return StageRecord("ran", key, parts.to_dict(), stored, seconds=seconds, warnings=said)

@@ -178,3 +178,39 @@ def test_damaged_cache_entry_is_a_miss_with_a_warning(
     registry, counter = toy_registry()
     _run(registry, session, toy_pipeline, out)
     assert counter.ran == ["gyro"] and (out / "s1" / "calibration.json").read_text() == first
+
+
+def test_a_cold_run_reads_the_outputs_it_produced_without_loading_them_again(
+    tmp_path, toy_registry, toy_pipeline, session, monkeypatch
+):
+    loaded = []
+    load = Cache.load
+    monkeypatch.setattr(Cache, "load", lambda self, key, port: loaded.append(port) or load(self, key, port))
+    out = tmp_path / "out"
+    _run(toy_registry()[0], session, toy_pipeline, out)
+    assert (out / "s1" / "calibration.json").is_file()
+    assert loaded == []  # every stage ran: downstream stages and exports got its tables as returned
+    registry, counter = toy_registry(bias_version="7")  # scaled cached, its consumers run
+    _run(registry, session, toy_pipeline, out)
+    assert counter.cached == ["scaled"] and "samples" in loaded  # a cached output comes from the cache
+
+
+def test_a_table_digest_is_remembered_while_the_table_lives(monkeypatch):
+    import gc
+
+    import pyarrow as pa
+
+    from imupipe import io
+
+    table = pa.table({"x": [1.0, 2.0]})
+    digest = table_digest(table)
+    equal = pa.concat_tables([table.slice(0, 1), table.slice(1)])  # same content, two chunks
+    assert table_digest(equal) == digest
+    monkeypatch.setattr(io.ipc, "new_stream", None)  # a second digest of either is not computed
+    assert table_digest(table) == table_digest(equal) == digest
+    monkeypatch.undo()
+    key = id(table)
+    del table, equal
+    gc.collect()
+    assert key not in io._DIGESTS
+    assert table_digest(pa.table({"x": [1.0, 3.0]})) != digest
