@@ -64,3 +64,15 @@ def test_report_is_written(result):
     assert "Turn validation" in report
     for link in [line.split("](")[1].rstrip(")") for line in report.splitlines() if line.startswith("![")]:
         assert (out / link).is_file(), link
+
+
+def test_the_per_sample_table_is_stored_as_one_batch(result):
+    """Each column one array: the digest of a table of several chunks copies it whole first."""
+    from pyarrow import ipc
+
+    _, out = result
+    (path,) = (out.parent / ".cache").rglob("samples.arrow")
+    with ipc.open_file(path) as stored:
+        assert stored.num_record_batches == 1 and stored.schema.field("sensor").type == "string"
+        sensors = stored.get_batch(0).column("sensor").to_pylist()
+    assert sensors[0] == "accel" and sensors[-1] == "gyro"

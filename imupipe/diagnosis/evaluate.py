@@ -299,10 +299,18 @@ def _motion_rates(model: JointModel, omega: np.ndarray, Q: np.ndarray, t: np.nda
 
 def sample_table(model: JointModel, lin: Linearised, streams, rests: Rests, Q: np.ndarray,
                  excluded: list[tuple[float, float]] = ()) -> pa.Table:
-    """One row per raw accelerometer and gyro sample (see the module docstring)."""
+    """One row per raw accelerometer and gyro sample (see the module docstring), the accelerometer's
+    first; each column one array (the stored table's digest then reads it in place, where a
+    table of two chunks is copied whole to be digested)."""
     P = model.unpack(lin.x_g)
-    parts = []
-    t_all = np.sort(np.concatenate([streams[s][0] for s in ("accel", "gyro")]))
+    sensors = ("accel", "gyro")
+    sizes = [len(streams[s][0]) for s in sensors]
+    n_all = sum(sizes)
+    col = {name: np.empty(n_all) for name in ("t_s", "t_on_s", "temperature", "temperature_rate",
+                                             "omega_norm", "alpha_norm")}
+    vec = {name: np.full((n_all, 3), np.nan) for name in ("gravity", "predicted", "residual", "whitened")}
+    segment, kinds = np.empty(n_all, np.int64), np.empty(n_all, np.int8)
+    t_all = np.sort(np.concatenate([streams[s][0] for s in sensors]))
     power_times = t_all[np.flatnonzero(np.diff(t_all) > POWER_GAP_S) + 1] if len(t_all) > 1 else np.zeros(0)
     u_rest = model.gravity(lin.x_l)[0]
     waa, wab = model.walk_states(lin.x_l, "wa")
@@ -311,14 +319,16 @@ def sample_table(model: JointModel, lin: Linearised, streams, rests: Rests, Q: n
          "gyro": np.linalg.cholesky(model.noise.gyro_sample)}
     omega_all, _ = model._rates(P, lin.x_l, derivatives=False)
     u_motion = lin.gravity()[1]
-    for sensor in ("accel", "gyro"):
+    start = 0
+    for sensor, n in zip(sensors, sizes, strict=True):
         t, y = streams[sensor]
-        n = len(t)
+        rows = slice(start, start + n)
+        start += n
         seg, kind = _segments(rests, t, power_times)
         for w0, w1 in excluded:
             kind[(t >= w0) & (t <= w1) & (kind == 1)] = 2
         T = model.temperature_at(t)
-        pred, whit, grav = (np.full((n, 3), np.nan) for _ in range(3))
+        pred, whit, grav = vec["predicted"][rows], vec["whitened"][rows], vec["gravity"][rows]  # NaN: no model
         rest = kind == 0
         if rest.any():  # the rest's direction, the bias walk interpolated across the rest
             r = seg[rest] // 2
@@ -336,16 +346,21 @@ def sample_table(model: JointModel, lin: Linearised, streams, rests: Rests, Q: n
             pred[idx] = model.accel.y - np.linalg.solve(model.W_sample, r_m.T).T
             whit[idx] = r_m
             grav[idx] = u_motion @ Q
-        w_norm, a_norm = _motion_rates(model, omega_all, Q, t)
-        parts.append(pa.table({
-            "sensor": pa.repeat(sensor, n), "t_s": t, "t_on_s": t - _last_power_on(t, power_times, t_all),
-            "segment": seg.astype(np.int64), "kind": pa.DictionaryArray.from_arrays(kind, KINDS).cast(pa.string()),
-            "temperature": T, "temperature_rate": np.gradient(T, t) if n > 1 else np.zeros(n),
-            "omega_norm": w_norm, "alpha_norm": a_norm,
-            "gravity": _triples(grav), "predicted": _triples(pred), "residual": _triples(y - pred),
-            "whitened": _triples(whit),
-        }))
-    return schemas.stamp(pa.concat_tables(parts), "sample_residuals")
+        vec["residual"][rows] = y - pred
+        col["omega_norm"][rows], col["alpha_norm"][rows] = _motion_rates(model, omega_all, Q, t)
+        col["t_s"][rows], col["t_on_s"][rows] = t, t - _last_power_on(t, power_times, t_all)
+        col["temperature"][rows] = T
+        col["temperature_rate"][rows] = np.gradient(T, t) if n > 1 else 0.0
+        segment[rows], kinds[rows] = seg, kind
+    which = np.repeat(np.arange(len(sensors), dtype=np.int8), sizes)
+    table = pa.table({
+        "sensor": pa.DictionaryArray.from_arrays(which, sensors).cast(pa.string()),
+        "t_s": col["t_s"], "t_on_s": col["t_on_s"], "segment": segment,
+        "kind": pa.DictionaryArray.from_arrays(kinds, KINDS).cast(pa.string()),
+        **{name: col[name] for name in ("temperature", "temperature_rate", "omega_norm", "alpha_norm")},
+        **{name: _triples(vec[name]) for name in ("gravity", "predicted", "residual", "whitened")},
+    })
+    return schemas.stamp(table, "sample_residuals")
 
 
 def _triples(x: np.ndarray) -> pa.FixedSizeListArray:
