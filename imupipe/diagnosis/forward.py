@@ -515,35 +515,15 @@ class JointModel:
         """The rows a term on the motions' gyro samples moves: the turns', then the motion samples'."""
         return np.flatnonzero(self.rows.of("turn") | self.rows.of("accel_motion"))
 
-    def gyro_columns(self, x_g: np.ndarray, x_l: np.ndarray, dy: np.ndarray | RateDerivatives) -> np.ndarray:
+    def gyro_columns(self, x_g: np.ndarray, x_l: np.ndarray, dy: np.ndarray | RateDerivatives,
+                     negate: bool = False) -> GyroColumns:
         """(len(motion_rows), k) d r / d theta on the ``motion_rows`` of a term ``dy`` (N_g, 3, k)
         added to the motions' raw gyro samples (zero on every other row), analytically: the
         calibration turns it into rate derivatives ``M_g dy``, which move the attitude at the
-        motions' samples and end-points; ``GYRO_CHUNK`` columns at a time (memory: the attitude's
-        sensitivities are as wide as the columns). ``dy`` may come factored (``RateDerivatives``:
-        a few signals times a basis), as a library's columns do: no (N_g, 3, k) array then."""
-        P = self.unpack(x_g)
-        n_turn = int(2 * self.K.sum())
-        out = np.zeros((n_turn + 3 * len(self.accel.t), dy.shape[2]))
-        if not self.m:
-            return out
-        W_end = np.stack([W[-1] for W in self.Qk_w])
-        ends = (np.cumsum(2 * self.K) - 2)[:, None] + np.arange(2)  # (m, 2) each motion's last interval
-        samples = (n_turn + np.arange(len(out) - n_turn)).reshape(-1, 3)
-        att = Attitude.integrate(self.quad, self._rates(P, x_l, derivatives=False)[0])
-        for a in range(0, dy.shape[2], GYRO_CHUNK):
-            cols = slice(a, min(a + GYRO_CHUNK, dy.shape[2]))
-            if isinstance(dy, RateDerivatives):
-                rate = RateDerivatives(dy.coef, np.einsum("ab,ubk->uak", P["M_g"], dy.basis[:, :, cols]))
-            else:
-                rate = np.einsum("ab,nbk->nak", P["M_g"], dy[:, :, cols])
-            zK, dz_gyro, _, _, D, *_ = self._endpoints(P, x_l, rate_columns=rate, att=att)
-            out[ends, cols] = W_end @ dz_gyro
-            for b in range(0, len(samples), SAMPLE_CHUNK):
-                n_c = len(samples[b:b + SAMPLE_CHUNK])
-                geo = self._sample_geometry(P, x_l, zK, att, slice(b, b + n_c))
-                out[samples[b:b + n_c], cols] = self._sample_rate_rows(geo, att, D, dz_gyro, b, n_c)[1]
-        return out
+        motions' samples and end-points. ``dy`` may come factored (``RateDerivatives``: a few
+        signals times a basis), as a library's columns do: no (N_g, 3, k) array then. Formed by
+        slices of rows when indexed (``GyroColumns``; ``[:]``: all of them); ``negate``: minus them."""
+        return GyroColumns(self, x_g, x_l, dy, negate)
 
     def turn_view(self, x_g: np.ndarray, x_l: np.ndarray) -> dict[str, np.ndarray]:
         """Per motion, in the body frame at its end (gauge frame): ``predicted`` (m, 3) the rest
@@ -1023,3 +1003,70 @@ class JointModel:
         pred = self.accel_prediction(P, g * ub, acc.t, walk)
         np.matmul(acc.y - pred, self.W_sample.T, out=r)
         sig.update(pred_accel_motion=pred, gravity_motion=ub)
+
+
+class GyroColumns:
+    """``JointModel.gyro_columns``' rows, formed when indexed by a slice of rows: the turns' rows
+    (a few per motion) at once, the motion samples' ``SAMPLE_CHUNK`` samples at a time, the last
+    block kept for the next slice (a structure cell reads a library's rows once, in order). Held
+    meanwhile: the attitude and the end-points' derivatives, ``GYRO_CHUNK`` columns at a time
+    (memory: the attitude's sensitivities are as wide as the columns), not the rows' array
+    (9 columns: 33 MiB per hour of recording)."""
+
+    def __init__(self, model: JointModel, x_g: np.ndarray, x_l: np.ndarray, dy: np.ndarray | RateDerivatives,
+                 negate: bool = False):
+        self.model, self.x_l, self.negate = model, x_l, negate
+        self.P = P = model.unpack(x_g)
+        self.n_turn = int(2 * model.K.sum())
+        self.shape = (self.n_turn + 3 * len(model.accel.t), dy.shape[2])
+        self.turns = np.zeros((self.n_turn, self.shape[1]))
+        self.chunks: list[tuple] = []  # per GYRO_CHUNK columns: (columns, z_K, dz_gyro, rate derivatives)
+        self._block: tuple[int, np.ndarray | None] = (-1, None)
+        if not model.m:
+            return
+        W_end = np.stack([W[-1] for W in model.Qk_w])
+        ends = (np.cumsum(2 * model.K) - 2)[:, None] + np.arange(2)  # (m, 2) each motion's last interval
+        self.att = Attitude.integrate(model.quad, model._rates(P, x_l, derivatives=False)[0])
+        for a in range(0, dy.shape[2], GYRO_CHUNK):
+            cols = slice(a, min(a + GYRO_CHUNK, dy.shape[2]))
+            if isinstance(dy, RateDerivatives):
+                rate = RateDerivatives(dy.coef, np.einsum("ab,ubk->uak", P["M_g"], dy.basis[:, :, cols]))
+            else:
+                rate = np.einsum("ab,nbk->nak", P["M_g"], dy[:, :, cols])
+            zK, dz_gyro, _, _, D, *_ = model._endpoints(P, x_l, rate_columns=rate, att=self.att)
+            self.turns[ends, cols] = W_end @ dz_gyro
+            self.chunks.append((cols, zK, dz_gyro, D))
+        if negate:
+            np.negative(self.turns, out=self.turns)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, rows: slice) -> np.ndarray:
+        a, b, _ = rows.indices(len(self))
+        out = np.zeros((max(b - a, 0), self.shape[1]))
+        if a < min(b, self.n_turn):
+            out[:min(b, self.n_turn) - a] = self.turns[a:b]
+        r = max(a, self.n_turn)
+        while r < b:  # the samples' rows, three a sample, by blocks of samples
+            first, block = self._samples((r - self.n_turn) // 3 // SAMPLE_CHUNK)
+            lo = self.n_turn + 3 * first
+            hi = min(lo + len(block), b)
+            out[r - a:hi - a] = block[r - lo:hi - lo]
+            r = hi
+        return out
+
+    def _samples(self, i: int) -> tuple[int, np.ndarray]:
+        """Block ``i`` of the motion samples: its first sample and its rows (3 n, k)."""
+        if self._block[0] != i:
+            self._block = (-1, None)  # the last block goes before the next is formed
+            model, first = self.model, i * SAMPLE_CHUNK
+            n_c = min(SAMPLE_CHUNK, len(model.accel.t) - first)
+            block = np.zeros((n_c, 3, self.shape[1]))
+            for cols, zK, dz_gyro, D in self.chunks:
+                geo = model._sample_geometry(self.P, self.x_l, zK, self.att, slice(first, first + n_c))
+                block[:, :, cols] = model._sample_rate_rows(geo, self.att, D, dz_gyro, first, n_c)[1]
+            if self.negate:
+                np.negative(block, out=block)
+            self._block = (i, block.reshape(3 * n_c, -1))
+        return i * SAMPLE_CHUNK, self._block[1]

@@ -28,6 +28,7 @@ at rest, whose sum is g^2) name several where one acts.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -37,8 +38,9 @@ import scipy.sparse as sp
 
 from .. import tails
 from .attitude import RateDerivatives
+from .forward import GyroColumns
 from .linearised import Linearised
-from .residual_map import windows
+from .residual_map import strongest, window_starts
 from .select import BOOT_DRAWS, Q_FDR, VISIBLE_MIN, Signals, block_wild_p, rigid_solver, time_blocks
 
 AXES = ("x", "y", "z")
@@ -103,15 +105,15 @@ class _Carried:
     bias's Jacobian column (``J_g``'s ``b_g`` columns on those rows) times that mean (``means``
     (motions, u), zero for the exact signals, at each row's ``motion``). A signal that changes
     within a motion (the specific force, turning with the attitude) has its exact columns
-    ``exact`` in ``E`` (m, len(exact)) (``Signals.gyro_motion_column``). Only ``E`` is as long as
-    the rows: the rest is formed by chunks."""
+    ``exact`` in ``E`` (m, len(exact)) (``Signals.gyro_motion_column``), formed by slices of rows
+    as they are read (``forward.GyroColumns``): nothing here is as long as the rows."""
 
     rows: np.ndarray  # (m,)
     J_g: np.ndarray
     b_g: slice
     motion: np.ndarray  # (m,)
     means: np.ndarray
-    E: np.ndarray
+    E: GyroColumns
     exact: list[int]
 
     def __len__(self) -> int:
@@ -244,7 +246,8 @@ def _carried(s: Signals, signals: list, exact: list[bool]) -> _Carried:
         basis[used.index(u), i, j] = 1.0
     coef = np.column_stack([signals[u][1] for u in used]) if used else np.zeros((len(ms.t), 0))
     dy = RateDerivatives(coef, basis)
-    return _Carried(at, lin.J_g, lin.globals.slices["b_g"], motion, means, s.gyro_motion_column(dy), by_column)
+    return _Carried(at, lin.J_g, lin.globals.slices["b_g"], motion, means, s.gyro_motion_column(dy, by_rows=True),
+                    by_column)
 
 
 def bootstrap_draws(tests: int, level: float) -> int:
@@ -291,7 +294,9 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
         LA = np.zeros((k, given.shape[1])) if conditional else None
         GB = np.zeros((Gr.shape[0], k)) if bootstrap else None
         rr = dof = 0.0
+        near = _Windows(lin, lib)
         for rows, C in lib.chunks():
+            near.add(C)
             gram += C.T @ C
             JgC += lin.J_g[rows].T @ C
             JlC += lin.J_l[rows].T @ C
@@ -325,7 +330,7 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
             cell = _score(lib, axes, sel, gram, visible, proj, h, scale, unit[lib.sensor], g_b, draws)
             if cell is not None:
                 scored.append(cell)
-        out += _with_windows(lin, lib, scored)
+        out += near.placed(scored)
         lib.forget()
     return out
 
@@ -426,18 +431,36 @@ def _stable_terms(B: np.ndarray, h: np.ndarray, g_b: np.ndarray) -> list[tuple[i
     return [(int(j), float(-score[n]), float(t[n]), float(share[j])) for n, j in enumerate(keep)]
 
 
-def _with_windows(lin: Linearised, lib: _Library, scored: list) -> list[StructureCell]:
-    """The cells with the time windows where their fitted terms concentrate (a second pass over
-    the library's chunks). A chunk's consecutive rows at one time (a sample's three axes) are
-    summed first: ``windows`` only sums them too, and the peak of the map is here."""
-    if not scored:
-        return []
-    W = np.column_stack([w for _, w in scored])
-    t, contrib = [], []
-    for rows, C in lib.chunks():
-        tc = lin.rows.t[rows]
-        first = np.flatnonzero(np.r_[True, tc[1:] != tc[:-1]])
-        t.append(tc[first])
-        contrib.append(np.add.reduceat((C @ W) ** 2, first, axis=0))
-    t, contrib = np.concatenate(t), np.vstack(contrib)
-    return [dataclasses.replace(cell, windows=windows(t, contrib[:, j])) for j, (cell, _) in enumerate(scored)]
+class _Windows:
+    """A library's rows grouped into ``residual_map.windows``' time windows (its rows' times
+    joined across gaps < 2 s), each window's ``C'C`` summed as the chunks pass (``add``, in the
+    chunks' order): a scored cell's fitted term ``C w`` puts ``w' (C'C) w`` of excess in each,
+    and ``placed`` gives each cell its strongest windows without a second pass over the rows."""
+
+    def __init__(self, lin: Linearised, lib: _Library):
+        t = np.concatenate([lin.rows.t[part.rows.ravel()] for part in lib.parts])  # the chunks' row order
+        order = np.argsort(t, kind="stable")
+        t = t[order]
+        starts = window_starts(t)
+        self.first, self.last = t[starts], t[np.r_[starts[1:], len(t)] - 1]
+        step = np.zeros(len(t), np.int32)
+        step[starts[1:]] = 1
+        self.window = np.empty(len(t), np.int32)
+        self.window[order] = np.cumsum(step, dtype=np.int32)
+        self.gram = np.zeros((len(starts), len(lib.columns), len(lib.columns)))
+        self.seen = 0
+
+    def add(self, C: np.ndarray) -> None:
+        w = self.window[self.seen:self.seen + len(C)]
+        self.seen += len(C)
+        runs = np.flatnonzero(np.r_[True, w[1:] != w[:-1], True])  # the chunk's rows by window
+        for a, b in itertools.pairwise(runs):
+            self.gram[w[a]] += C[a:b].T @ C[a:b]
+
+    def placed(self, scored: list) -> list[StructureCell]:
+        """The cells of ``scored`` ((cell, w) pairs) with their windows."""
+        out = []
+        for cell, w in scored:
+            excess = np.einsum("i,gij,j->g", w, self.gram, w)
+            out.append(dataclasses.replace(cell, windows=strongest(self.first, self.last, excess)))
+        return out

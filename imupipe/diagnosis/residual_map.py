@@ -186,11 +186,20 @@ def windows(t: np.ndarray, contrib: np.ndarray, gap: float = 2.0, keep: int = 12
     if np.any(t[1:] < t[:-1]):  # a cell's rows mostly come in time order already
         o = np.argsort(t)
         t, contrib = t[o], contrib[o]
-    starts = np.r_[0, np.flatnonzero(np.diff(t) > gap) + 1]
+    starts = window_starts(t, gap)
     ends = np.r_[starts[1:], len(t)]
-    excess = np.add.reduceat(contrib, starts)
-    best = sorted(range(len(starts)), key=lambda i: -excess[i])[:keep]
-    return sorted((float(t[starts[i]]), float(t[ends[i] - 1])) for i in best)
+    return strongest(t[starts], t[ends - 1], np.add.reduceat(contrib, starts), keep)
+
+
+def window_starts(t: np.ndarray, gap: float = 2.0) -> np.ndarray:
+    """Where each window of sorted times ``t`` starts: they are joined across gaps < ``gap`` s."""
+    return np.r_[0, np.flatnonzero(np.diff(t) > gap) + 1]
+
+
+def strongest(first: np.ndarray, last: np.ndarray, excess: np.ndarray, keep: int = 12) -> list[tuple[float, float]]:
+    """The ``keep`` windows (``first``, ``last`` s) of most ``excess``, in time order."""
+    best = sorted(range(len(first)), key=lambda i: -excess[i])[:keep]
+    return sorted((float(first[i]), float(last[i])) for i in best)
 
 
 def _bins(name: str, x: np.ndarray) -> list[tuple[float, float]]:

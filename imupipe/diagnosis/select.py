@@ -251,13 +251,14 @@ class Signals:
             C[self.model.motion_rows] += self.gyro_motion_column(regressors("gyro_motion"))
         return C
 
-    def gyro_motion_column(self, dy) -> np.ndarray:
+    def gyro_motion_column(self, dy, by_rows: bool = False):
         """(len(motion_rows), k) the column of a term ``dy`` (N_g, 3, k), or factored
         (``attitude.RateDerivatives``), added to the motions' gyro samples on the rows it moves
         (``JointModel.motion_rows``), through the attitude they integrate to
-        (``JointModel.gyro_columns``; the term in the prediction: r falls)."""
-        out = self.model.gyro_columns(self.lin.x_g, self.lin.x_l, dy)
-        return np.negative(out, out=out)  # in place: at the map's peak, a copy is 30 MiB an hour
+        (``JointModel.gyro_columns``; the term in the prediction: r falls); ``by_rows``: as
+        ``forward.GyroColumns``, whose slices of rows are formed when read."""
+        rows = self.model.gyro_columns(self.lin.x_g, self.lin.x_l, dy, negate=True)
+        return rows if by_rows else rows[:]
 
 
 def temperature_curve(model, t_first: float, t_last: float):

@@ -135,7 +135,7 @@ def test_a_term_on_the_motions_gyro_samples_has_the_columns_its_differenced_resi
     rng = np.random.default_rng(4)
     dy = rng.standard_normal((len(ms.t), 3, 14)) * 1e-3
     dy[:, :, 0] = np.abs(ms.y)  # a rate-sign term on every axis
-    J = model.gyro_columns(lin.x_g, lin.x_l, dy)
+    J = model.gyro_columns(lin.x_g, lin.x_l, dy)[:]
     for c in (0, 5, 13):
         h = 1e-3
 
@@ -162,7 +162,24 @@ def test_a_factored_gyro_term_has_the_columns_of_its_dense_form(fitted):
     for j in range(14):  # ... each column one of them on one axis
         basis[j % 2, j % 3, j] = 1.0
     dense = np.einsum("nu,ubk->nbk", signals, basis)
-    want = model.gyro_columns(lin.x_g, lin.x_l, dense)
-    got = model.gyro_columns(lin.x_g, lin.x_l, RateDerivatives(signals, basis))
+    want = model.gyro_columns(lin.x_g, lin.x_l, dense)[:]
+    got = model.gyro_columns(lin.x_g, lin.x_l, RateDerivatives(signals, basis))[:]
     assert np.abs(want).max() > 0
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
+
+
+def test_gyro_columns_read_by_slices_of_rows_are_the_same_bits(fitted, monkeypatch):
+    """A structure cell reads a library's gyro columns by slices of rows as it goes: any slices,
+    across the turns' rows and blocks of samples, give the bits of the whole."""
+    lin = fitted[-1]
+    model = lin.model
+    dy = np.random.default_rng(3).normal(size=(len(model.motions.t), 3, 14))  # two chunks of columns
+    whole = model.gyro_columns(lin.x_g, lin.x_l, dy)[:]
+    monkeypatch.setattr(forward, "SAMPLE_CHUNK", 37)  # many blocks of samples, the last one short
+    cols = model.gyro_columns(lin.x_g, lin.x_l, dy, negate=True)
+    n_turn = cols.n_turn
+    assert 0 < n_turn < len(cols) == len(whole)
+    edges = [0, n_turn - 1, n_turn + 4, n_turn + 3 * 37 + 1, n_turn + 500, len(cols) - 2, len(cols)]
+    got = np.vstack([cols[a:b] for a, b in zip(edges[:-1], edges[1:], strict=True)])
+    assert np.abs(whole).max() > 0 and np.array_equal(got, -whole)
+    assert np.array_equal(cols[n_turn + 3:n_turn + 9], -whole[n_turn + 3:n_turn + 9])  # a block read again

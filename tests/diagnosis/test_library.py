@@ -106,3 +106,28 @@ def test_stability_selection_keeps_the_acting_signal_and_not_its_correlated_neig
         assert share >= library.STABLE_MIN and abs(-coefficient - truth[j]) < 3 and abs(t) > 4
     noise = (X * rng.normal(size=len(X))[:, None]).reshape(G, rows, 6).sum(1)
     assert library._stable_terms(B, noise.sum(0), noise) == []  # noise alone: nothing stable
+
+
+def test_windows_from_the_chunks_grams_are_the_rows_windows():
+    """A structure cell's windows come from each window's C'C summed in the one pass over the
+    chunks: the same windows as ``residual_map.windows`` of every row's (C w)^2."""
+    from types import SimpleNamespace
+
+    from imupipe.diagnosis.residual_map import windows
+
+    rng = np.random.default_rng(5)
+    # rows out of time order across two parts (rest means, then motion samples), gaps between bursts
+    t_rest = np.repeat(np.arange(40) * 10.0 + 4.0, 3)
+    t_motion = np.repeat(np.sort(np.concatenate([s + rng.uniform(0, 3, 50) for s in np.arange(40) * 10.0])), 3)
+    t = np.r_[t_rest, t_motion, np.nan]  # a row of no library: nothing reads it
+    parts = [SimpleNamespace(rows=np.arange(len(t_rest)).reshape(-1, 3)),
+             SimpleNamespace(rows=len(t_rest) + np.arange(len(t_motion)))]
+    lib = SimpleNamespace(parts=parts, columns=[None] * 4)
+    near = library._Windows(SimpleNamespace(rows=SimpleNamespace(t=t)), lib)
+    C = rng.normal(size=(len(t) - 1, 4)) * np.where(t[:-1] > 200, 3.0, 1.0)[:, None]
+    for a in range(0, len(C), 97):  # chunks that split samples and windows
+        near.add(C[a:a + 97])
+    w = rng.normal(size=4)
+    cell = library.StructureCell("accel", ("x",), "motion", 1.0, 1.0, [])
+    (placed,) = near.placed([(cell, w)])
+    assert len(placed.windows) == 12 and placed.windows == windows(t[:-1], (C @ w) ** 2)
