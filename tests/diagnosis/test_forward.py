@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
@@ -180,6 +181,6 @@ def test_gyro_columns_read_by_slices_of_rows_are_the_same_bits(fitted, monkeypat
     n_turn = cols.n_turn
     assert 0 < n_turn < len(cols) == len(whole)
     edges = [0, n_turn - 1, n_turn + 4, n_turn + 3 * 37 + 1, n_turn + 500, len(cols) - 2, len(cols)]
-    got = np.vstack([cols[a:b] for a, b in zip(edges[:-1], edges[1:], strict=True)])
+    got = np.vstack([cols[a:b] for a, b in itertools.pairwise(edges)])
     assert np.abs(whole).max() > 0 and np.array_equal(got, -whole)
     assert np.array_equal(cols[n_turn + 3:n_turn + 9], -whole[n_turn + 3:n_turn + 9])  # a block read again
