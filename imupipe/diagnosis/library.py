@@ -83,18 +83,19 @@ class StructureCell:
 @dataclass
 class _Readings:
     """Rows whose readings a library's regressors act on directly (rest means, motion samples):
-    column ``c`` adds ``X[:, c]`` to raw axis ``axis[c]``, whitened by ``W`` ((3, 3) or (n, 3, 3))."""
+    column ``c`` adds ``X(sl)[:, c]`` to raw axis ``axis[c]``, whitened by ``W`` ((3, 3) or (n, 3, 3)).
+    ``X(sl)``: the library's signals at a slice of the readings, formed as they are read."""
 
     rows: np.ndarray  # (n, 3) rows of the fit
     W: np.ndarray
-    X: np.ndarray  # (n, u): the library's signals; column c uses signal use[c]
+    X: Callable[[slice], np.ndarray]  # -> (len(sl), u): column c uses signal use[c]
 
     def __len__(self) -> int:
         return len(self.rows)
 
     def form(self, sl: slice, axis: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         W = self.W if self.W.ndim == 2 else self.W[sl]
-        C = -(W[..., :, axis] * self.X[sl][:, None, use])  # d r / d theta: whitener column times regressor
+        C = -(W[..., :, axis] * self.X(sl)[:, None, use])  # d r / d theta: whitener column times regressor
         return self.rows[sl].ravel(), C.reshape(-1, len(axis))
 
 
@@ -188,14 +189,14 @@ def libraries(s: Signals) -> list[_Library]:
     rest_g = _static(s.f_rest, model.dT, warm(s.t_on_rest), gyro=True)
 
     def accel_static() -> list:
-        parts = [_Readings(s.rows_a, s.W_a, _matrix(rest_a))]
+        parts = [_Readings(s.rows_a, s.W_a, _matrix(rest_a).__getitem__)]
         if motion_a:
-            motion = _static(s.f_motion, model.dT_acc, warm(s.t_on_motion), gyro=False)
-            parts.append(_Readings(s.rows_m, model.W_sample, _matrix(motion)))
+            parts.append(_Readings(s.rows_m, model.W_sample, lambda sl: _matrix(_static(
+                s.f_motion[sl], model.dT_acc[sl], warm(s.t_on_motion[sl]), gyro=False))))
         return parts
 
     def gyro_static() -> list:
-        parts = [_Readings(s.rows_g, s.W_g, _matrix(rest_g))]
+        parts = [_Readings(s.rows_g, s.W_g, _matrix(rest_g).__getitem__)]
         if carried:
             motion = _static(s.f_gyro_motion, model.dT_gyro, warm(s.t_on_gyro_motion), gyro=True)
             parts.append(_carried(s, motion, [name.startswith("f_") for name, _, _ in motion]))
@@ -205,18 +206,20 @@ def libraries(s: Signals) -> list[_Library]:
                     len(s.rows_a) + (len(s.rows_m) if motion_a else 0)),
            _Library("gyro", "static", _per_axis(rest_g), gyro_static, len(s.rows_g) + carried)]
     if carried:  # a response that differs with the rate's sign (scale asymmetry, rectification)
-        rate = [(f"|x_{AXES[j]}|", np.abs(s.x_gyro_motion[:, j]), "rad/s") for j in range(3)]
-        out.append(_Library("gyro", "motion", _per_axis(rate), lambda: [_carried(s, rate, [True] * 3)], carried))
-    if motion_a:  # its names read here, its signals formed again when scored (not held meanwhile)
-        out.append(_Library("accel", "motion", _per_axis(_accel_motion(s)),
-                            lambda: [_Readings(s.rows_m, model.W_sample, _matrix(_accel_motion(s)))], len(s.rows_m)))
+        rate = lambda: [(f"|x_{AXES[j]}|", np.abs(s.x_gyro_motion[:, j]), "rad/s") for j in range(3)]
+        out.append(_Library("gyro", "motion", [(i, f"|x_{AXES[u]}|", "rad/s", u) for i in range(3) for u in range(3)],
+                            lambda: [_carried(s, rate(), [True] * 3)], carried))
+    if motion_a:  # its names read here (of no samples), its signals formed by slices as they are read
+        out.append(_Library("accel", "motion", _per_axis(_accel_motion(s, slice(0, 0))),
+                            lambda: [_Readings(s.rows_m, model.W_sample, lambda sl: _matrix(_accel_motion(s, sl)))],
+                            len(s.rows_m)))
     return [lib for lib in out if lib.readings]
 
 
-def _accel_motion(s: Signals) -> list[tuple[str, np.ndarray, str]]:
-    """The accelerometer's motion library at its motion samples: rate products, angular
+def _accel_motion(s: Signals, sl: slice) -> list[tuple[str, np.ndarray, str]]:
+    """The accelerometer's motion library at motion samples ``sl``: rate products, angular
     acceleration, jerk of the specific force and its products."""
-    w, a, fd, f = s.omega, s.alpha, s.f_dot, s.f_motion
+    w, a, fd, f = s.omega[sl], s.alpha[sl], s.f_dot[sl], s.f_motion[sl]
     out = [(f"w_{AXES[j]}*w_{AXES[k]}", w[:, j] * w[:, k], "(rad/s)^2") for j, k in _PAIRS]
     out += [(f"alpha_{AXES[j]}", a[:, j], "rad/s^2") for j in range(3)]
     out += [(f"fdot_{AXES[j]}", fd[:, j], "m/s^3") for j in range(3)]
