@@ -206,14 +206,18 @@ def libraries(s: Signals) -> list[_Library]:
                     len(s.rows_a) + (len(s.rows_m) if motion_a else 0)),
            _Library("gyro", "static", _per_axis(rest_g), gyro_static, len(s.rows_g) + carried)]
     if carried:  # a response that differs with the rate's sign (scale asymmetry, rectification)
-        rate = lambda: [(f"|x_{AXES[j]}|", np.abs(s.x_gyro_motion[:, j]), "rad/s") for j in range(3)]
-        out.append(_Library("gyro", "motion", [(i, f"|x_{AXES[u]}|", "rad/s", u) for i in range(3) for u in range(3)],
-                            lambda: [_carried(s, rate(), [True] * 3)], carried))
+        out.append(_Library("gyro", "motion", _per_axis(_abs_rate(s, slice(0, 0))),
+                            lambda: [_carried(s, _abs_rate(s, slice(None)), [True] * 3)], carried))
     if motion_a:  # its names read here (of no samples), its signals formed by slices as they are read
         out.append(_Library("accel", "motion", _per_axis(_accel_motion(s, slice(0, 0))),
                             lambda: [_Readings(s.rows_m, model.W_sample, lambda sl: _matrix(_accel_motion(s, sl)))],
                             len(s.rows_m)))
     return [lib for lib in out if lib.readings]
+
+
+def _abs_rate(s: Signals, sl: slice) -> list[tuple[str, np.ndarray, str]]:
+    """The gyro's motion library at its motion samples ``sl``: the magnitude of each sensed rate."""
+    return [(f"|x_{AXES[j]}|", np.abs(s.x_gyro_motion[sl, j]), "rad/s") for j in range(3)]
 
 
 def _accel_motion(s: Signals, sl: slice) -> list[tuple[str, np.ndarray, str]]:

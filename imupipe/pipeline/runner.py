@@ -275,8 +275,9 @@ def _run_node(node: Node, run: SessionRun, source: _Source, registry: Registry) 
             _log_warnings(node.key, said)
     seconds = time.perf_counter() - t0
     _check_outputs(node, outputs, where)
-    stored = run.cache.store(parts, {p: outputs[p] for p in node.stage.outputs}, node.key, said)
-    run.keep(node.key, {p: outputs[p] for p in node.stage.outputs})
+    produced = {p: outputs[p] for p in node.stage.outputs}
+    stored = run.cache.store(parts, produced, node.key, said)
+    run.keep(node.key, produced)
     _observe(registry, "imupipe_after_stage", stage=node.key, key=key, cached=False,
              seconds=seconds)
     return StageRecord("ran", key, parts.to_dict(), stored, seconds=seconds, warnings=said)
