@@ -24,9 +24,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-import pyarrow.compute as pc
 
 from .. import tails
+from ..columns import equals, vectors
 from .evaluate import Evaluation
 from .events import Event
 from .forward import BLOCKS
@@ -99,17 +99,6 @@ class RowSet:
                       {k: v[sel] for k, v in self.var.items()}, self.family)
 
 
-def vectors(table, name: str) -> np.ndarray:
-    """(n, 3) a fixed-size-list column of a table."""
-    col = table.column(name).combine_chunks()
-    return col.flatten().to_numpy(zero_copy_only=False).reshape(len(col), -1)
-
-
-def _is(table, name: str, value: str) -> np.ndarray:
-    """(n,) bool: a string column equals ``value`` (compared in Arrow: no Python strings per row)."""
-    return pc.equal(table.column(name), value).to_numpy(zero_copy_only=False)
-
-
 def _gravity_cell(g: np.ndarray) -> np.ndarray:
     """Index into GRAVITY_CELLS of the axis most aligned with gravity (up), per row; -1 unknown."""
     ok = np.all(np.isfinite(g), axis=1)
@@ -132,7 +121,7 @@ def model_rows(ev: Evaluation) -> RowSet:
     t = rows.t[idx]
     samples = ev.samples
     st = samples.column("t_s").to_numpy()
-    acc_rows = _is(samples, "sensor", "accel")
+    acc_rows = equals(samples, "sensor", "accel")
     s_t = st[acc_rows]
     order = np.argsort(s_t)
 
@@ -160,8 +149,8 @@ def rest_scatter_rows(ev: Evaluation) -> RowSet:
     """Within-rest scatter: each rest sample's whitened residual about its rest's mean (the
     mean is the model rows' business), ``(n_i - 1) / n_i`` degrees of freedom each."""
     s = ev.samples
-    keep = _is(s, "kind", "rest")
-    sensor = np.where(_is(s, "sensor", "gyro")[keep], "gyro", "accel")
+    keep = equals(s, "kind", "rest")
+    sensor = np.where(equals(s, "sensor", "gyro")[keep], "gyro", "accel")
     seg = s.column("segment").to_numpy()[keep]
     t = s.column("t_s").to_numpy()[keep]
     w = vectors(s, "whitened")[keep]

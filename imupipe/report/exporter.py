@@ -26,6 +26,7 @@ import numpy as np
 import pyarrow as pa
 
 from .. import schemas
+from ..columns import vectors
 from ..errors import require
 from ..io import atomic_path, copy_file, table_digest, write_text
 from ..paths import safe_name, under
@@ -33,10 +34,9 @@ from . import html, noise_figures, residual_figures, segment_figures
 
 
 def _col(table: pa.Table, name: str) -> np.ndarray:
-    col = table.column(name).combine_chunks()
-    if pa.types.is_fixed_size_list(col.type):
-        return col.flatten().to_numpy(zero_copy_only=False).reshape(len(col), -1)
-    return col.to_numpy(zero_copy_only=False)
+    if pa.types.is_fixed_size_list(table.schema.field(name).type):
+        return vectors(table, name)
+    return table.column(name).combine_chunks().to_numpy(zero_copy_only=False)
 
 
 DPI = 110

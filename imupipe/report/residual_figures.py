@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
 
+from ..columns import equals, vectors
 from .spans import shade
 
 GRAVITY_CELLS = ("+x up", "-x up", "+y up", "-y up", "+z up", "-z up")
@@ -86,26 +86,16 @@ def draw_heat_map(fig, doc: dict, sensor: str) -> None:
     cb.set_label("log10 chi2/dof (0 = the model holds)")
 
 
-def _vec(t: pa.Table, name: str) -> np.ndarray:
-    col = t.column(name).combine_chunks()
-    return col.flatten().to_numpy(zero_copy_only=False).reshape(len(col), -1)
-
-
-def _equals(t: pa.Table, name: str, value: str) -> np.ndarray:
-    """(n,) bool: a string column equals ``value``, compared in Arrow (no Python string per row)."""
-    return pc.equal(t.column(name), value).to_numpy(zero_copy_only=False)
-
-
 def draw_time_series(fig, samples: pa.Table, doc: dict, every: int = 5) -> None:
     """Whitened residual per sensor and axis along the session (every ``every``-th sample),
     rests shaded, flagged cells' windows in red, events as vertical lines."""
     axes = fig.subplots(2, 1, sharex=True)
     t = samples.column("t_s").to_numpy()
-    rest_all = _equals(samples, "kind", "rest")
-    w = _vec(samples, "whitened")
+    rest_all = equals(samples, "kind", "rest")
+    w = vectors(samples, "whitened")
     flagged = [c for c in doc["cells"] if c["flagged"]]
     for ax, s in zip(axes, ("accel", "gyro"), strict=True):
-        m = _equals(samples, "sensor", s)
+        m = equals(samples, "sensor", s)
         ts, ws, rest = t[m], w[m], rest_all[m]
         edges = np.flatnonzero(np.diff(np.r_[0, rest.astype(int), 0]))
         shade(ax, ts[edges[0::2]] / 60, ts[edges[1::2] - 1] / 60, color="0.9", lw=0)
