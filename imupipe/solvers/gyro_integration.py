@@ -29,6 +29,7 @@ from ..diagnosis.events import clipped
 from ..errors import SolverError
 from ..observations import GyroObservations, TriadFit, Turns
 from ..rotations import carry, pad_turns, turn_rotations
+from .levenberg_marquardt import levenberg_marquardt
 from .triad_covariance import gauss_newton_cov
 
 MIN_TURNS = 5  # each turn gives two equations for nine constants
@@ -42,7 +43,7 @@ class GyroIntegrationParams(Params):
     fit_bias: bool = False
     """Also refine the bias in the optimisation (the paper keeps Eq. (2.15)'s mean)."""
     max_nfev: int = Field(200, ge=1)
-    """Cost evaluations the optimiser may spend."""
+    """Cost evaluations the optimiser may spend, its difference Jacobians' included."""
     exclude_saturated: bool = True
     """Leave out turns whose gyro clips (runs of samples at the axis's extreme value, or
     beyond ``saturation_rad_s``), with a warning: a clipped rate cannot be integrated."""
@@ -114,13 +115,10 @@ class GyroIntegration:
 
     name = "gyro_integration"
     kind = "gyro"
-    version = "1"
+    version = "2"  # 2: imupipe's own Levenberg-Marquardt (was scipy's MINPACK)
     params: ClassVar[type[Params]] = GyroIntegrationParams
 
     def solve(self, observations: GyroObservations, params: GyroIntegrationParams) -> TriadFit:
-        # here, not at the top: a warm run loads this module and skips importing scipy.optimize
-        from scipy.optimize import least_squares
-
         turns = observations.turns
         n_all = len(turns)
         if params.exclude_saturated:
@@ -161,8 +159,7 @@ class GyroIntegration:
             scale, _ = initial_scale(rate_c, dt, g0, g1, lambda th: cost(np.concatenate(
                 [th, b if params.fit_bias else []])))
         theta0 = np.concatenate([scale * np.eye(3).ravel(), b if params.fit_bias else []])
-        sol = least_squares(cost, theta0, method="lm" if 3 * m >= len(theta0) else "trf",
-                            x_scale="jac", max_nfev=params.max_nfev)
+        sol = levenberg_marquardt(cost, theta0, params.max_nfev)
         M, bias = unpack(sol.x)
         J = sol.jac
         if np.linalg.matrix_rank(J.T @ J, tol=1e-10 * np.abs(J.T @ J).max()) < len(theta0):
