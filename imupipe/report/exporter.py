@@ -43,14 +43,18 @@ DPI = 110
 PAD_IN = 2.0  # canvas beyond the axes on every side: the widest labels (the heat map's cell names, ~1.4 in) fit
 
 
-def _new_figure(plt, size: tuple[float, float], suptitle: str | None = None):
+def _new_figure(size: tuple[float, float], suptitle: str | None = None):
     """A figure whose axes (and ``suptitle``) sit as on a ``size`` (inches) figure, on a canvas
     ``PAD_IN`` larger on every side: labels and legends outside the axes stay on it, for
-    ``_save`` to crop."""
+    ``_save`` to crop. Agg's, without pyplot (whose import is a third of matplotlib's)."""
+    from matplotlib import rcParams as rc
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
     w, h = size
     W, H = w + 2 * PAD_IN, h + 2 * PAD_IN
-    fig = plt.figure(figsize=(W, H), dpi=DPI)
-    rc = plt.rcParams
+    fig = Figure(figsize=(W, H), dpi=DPI)
+    FigureCanvasAgg(fig)
     fig.subplots_adjust(left=(rc["figure.subplot.left"] * w + PAD_IN) / W,
                         right=(rc["figure.subplot.right"] * w + PAD_IN) / W,
                         bottom=(rc["figure.subplot.bottom"] * h + PAD_IN) / H,
@@ -228,10 +232,7 @@ class ReportExporter:
     writes = ("report.md", "report.html", "figures")
 
     def export(self, results: Mapping[str, pa.Table], context: Mapping[str, Any], out_dir: Path) -> list[Path]:
-        mpl = require("matplotlib", "report")
-        mpl.use("Agg")
-        import matplotlib.pyplot as plt
-
+        require("matplotlib", "report")
         out_dir = Path(out_dir)
         figs = out_dir / "figures"
         written: list[Path] = []
@@ -251,16 +252,15 @@ class ReportExporter:
             kept = None if key is None else Path(store) / key[:2] / f"{key}.png"
             if not (kept is not None and _copied(kept, path)):
                 if panels:
-                    fig = _new_figure(plt, (8, 7), suptitle=title)
+                    fig = _new_figure((8, 7), suptitle=title)
                     draw(fig)
                 else:
-                    fig = _new_figure(plt, (7, 3.6))
+                    fig = _new_figure((7, 3.6))
                     ax = fig.subplots()
                     draw(ax)
                     ax.set_title(title)
                     ax.grid(alpha=0.3)
                 _save(fig, path)
-                plt.close(fig)
                 if kept is not None:
                     with contextlib.suppress(OSError):  # a store it cannot write only costs a redraw
                         copy_file(path, kept)
