@@ -127,20 +127,35 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
 # --------------------------------------------------------------------------- quaternions
 
 
-def quat_exp(phi: np.ndarray) -> np.ndarray:
-    """Unit quaternions (..., 4) of rotation vectors ``phi`` (..., 3) rad."""
+def _half_angle(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``sin(theta/2)/theta`` and ``cos(theta/2)`` of rotation vectors ``phi`` (..., 3), with
+    their series near zero; the sine and cosine only where needed (padded turns are zero
+    rotations)."""
     theta2 = np.einsum("...i,...i->...", phi, phi)
     theta = np.sqrt(theta2)
-    # sin(theta/2)/theta and cos(theta/2), with their series near zero; the sine and cosine
-    # only where needed (padded turns are zero rotations)
     s, c = np.asarray(0.5 - theta2 / 48.0), np.asarray(1.0 - theta2 / 8.0)
     big = theta >= _SMALL_ANGLE
     t = theta[big]
     s[big] = np.sin(0.5 * t) / t
     c[big] = np.cos(0.5 * t)
+    return s, c
+
+
+def quat_exp(phi: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4) of rotation vectors ``phi`` (..., 3) rad."""
+    s, c = _half_angle(phi)
     q = np.empty((*phi.shape[:-1], 4), np.result_type(s, phi))
     q[..., 0] = c
     np.multiply(s[..., None], phi, out=q[..., 1:])
+    return q
+
+
+def _quat_exp_first(phi: np.ndarray) -> np.ndarray:
+    """``quat_exp`` with the components first: (4, ...) of ``phi`` (..., 3)."""
+    s, c = _half_angle(phi)
+    q = np.empty((4, *phi.shape[:-1]))
+    q[0] = c
+    np.multiply(s, np.moveaxis(phi, -1, 0), out=q[1:])
     return q
 
 
@@ -171,8 +186,8 @@ _HAMILTON = (((0, 0, 1), (1, 1, -1), (2, 2, -1), (3, 3, -1)),
 
 
 def quat_mul_into(p: np.ndarray, q: np.ndarray, out: np.ndarray, scratch: np.ndarray) -> np.ndarray:
-    """The Hamilton product of component-first quaternions ``p``, ``q`` (4, n) into ``out``
-    (4, n; not ``p`` or ``q``), ``scratch`` (n,) its one temporary: contiguous rows and no
+    """The Hamilton product of component-first quaternions ``p``, ``q`` (4, ...) into ``out``
+    (4, ...; not ``p`` or ``q``), ``scratch`` (...) its one temporary: whole components and no
     allocation (2.6x faster in a scan than products of (n, 4) arrays)."""
     for o, terms in zip(out, _HAMILTON, strict=True):
         (i, j, _), *rest = terms
@@ -189,13 +204,21 @@ def compose(q: np.ndarray) -> np.ndarray:
     Log-depth pairwise reduction: adjacent pairs are multiplied in order, which
     associativity makes equal to the left-to-right product.
     """
-    while q.shape[1] > 1:
-        if q.shape[1] % 2:
-            identity = np.zeros((q.shape[0], 1, 4))
-            identity[..., 0] = 1.0
-            q = np.concatenate([q, identity], axis=1)
-        q = quat_mul(q[:, 0::2], q[:, 1::2])
-    return q[:, 0]
+    return _compose_first(np.moveaxis(q, -1, 0)).T
+
+
+def _compose_first(q: np.ndarray) -> np.ndarray:
+    """``compose`` of component-first quaternions (4, m, k) -> (4, m): each level's pairs are
+    strided views multiplied into one new array (no transposed copies: 1.1-1.3x faster)."""
+    while q.shape[-1] > 1:
+        if q.shape[-1] % 2:
+            identity = np.zeros((*q.shape[:-1], 1))
+            identity[0] = 1.0
+            q = np.concatenate([q, identity], axis=-1)
+        out = np.empty((*q.shape[:-1], q.shape[-1] // 2))
+        quat_mul_into(q[..., 0::2], q[..., 1::2], out, np.empty(out.shape[1:]))
+        q = out
+    return q[..., 0]
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
@@ -288,7 +311,7 @@ def _turn_products(rate: np.ndarray, dt: np.ndarray, M: np.ndarray | None = None
         for a in range(0, len(pos), TURN_CHUNK):
             p = pos[a:a + TURN_CHUNK]
             w = rate[turns[p], :n] if M is None else rate[turns[p], :n] @ M.T
-            out[p] = compose(quat_exp(w * dt[turns[p], :n, None]))
+            out[p] = _compose_first(_quat_exp_first(w * dt[turns[p], :n, None])).T
     return out
 
 
