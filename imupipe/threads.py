@@ -16,8 +16,12 @@ The results do not depend on the thread count beyond rounding.
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import importlib.util
 import os
+import sys
 from collections.abc import Iterator
+from pathlib import Path
 
 from .errors import ConfigError
 
@@ -50,10 +54,22 @@ def _load_blas() -> None:
     """Load every BLAS imupipe calls, so that the limit reaches them all.
 
     threadpoolctl limits the libraries already loaded: numpy and SciPy each ship
-    their own OpenBLAS, and SciPy's is loaded with ``scipy.linalg``.
+    their own OpenBLAS. SciPy's wheel keeps its own in ``scipy.libs``: that library is
+    loaded by itself (2 ms), and ``scipy.linalg``, imported later, links to it, limited;
+    importing ``scipy.linalg`` to load it would cost ~0.15 s that a pipeline without it
+    (imu_tk's) never needs. Other installs load it with ``scipy.linalg``.
     """
     import numpy  # noqa: F401
-    import scipy.linalg  # noqa: F401
+
+    if "scipy.linalg" in sys.modules:
+        return
+    spec = importlib.util.find_spec("scipy")
+    libs = Path(spec.origin).parent.parent / "scipy.libs" if spec and spec.origin else None
+    found = sorted(libs.glob("libscipy_openblas*.so*")) if libs and libs.is_dir() else []
+    if not found:
+        import scipy.linalg  # noqa: F401
+    for path in found:
+        ctypes.CDLL(str(path))
 
 
 @contextlib.contextmanager

@@ -23,9 +23,6 @@ walk's level (e.g. centred on the session).
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg.lapack import dpbtrf, dpbtrs
-
-from .blocktri import finite
 
 _GRID = np.linspace(-4.0, 10.0, 15)  # log10 of q L / (median white variance of a mean)
 _NU_GRID = np.linspace(-1.0, 5.0, 7)  # log10 of the extra rest scatter / the same
@@ -119,7 +116,13 @@ def reml_cost(q: float, t_start: np.ndarray, t_end: np.ndarray, r: np.ndarray, v
         Dd = H.shape[1]
         ab, _ = _precision(times, ia, ib, H, dvar, q)
         # scipy's cholesky_banded and cho_solve_banded, called on LAPACK directly: a walk's
-        # intensity takes hundreds of these small solves, and scipy's checks cost as much
+        # intensity takes hundreds of these small solves, and scipy's checks cost as much.
+        # Imported here: registering the solvers (joint_ml imports this module) stays free of
+        # scipy.linalg, which pipelines without the joint fit never need (~0.15 s)
+        from scipy.linalg.lapack import dpbtrf, dpbtrs
+
+        from .blocktri import finite
+
         cb, info = dpbtrf(finite(ab), lower=1)
         if info > 0:  # not positive definite
             return np.inf

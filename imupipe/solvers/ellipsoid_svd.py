@@ -22,7 +22,6 @@ from __future__ import annotations
 from typing import ClassVar, Literal
 
 import numpy as np
-from scipy.linalg import sqrtm
 
 from ..components import Params
 from ..errors import SolverError
@@ -98,6 +97,8 @@ def square_root_inverse(W: np.ndarray, how: str) -> np.ndarray:
             return np.linalg.cholesky(np.linalg.inv(W))
         if how == "upper_correction":  # W = M^T M with M = L^T upper-triangular
             return np.linalg.inv(np.linalg.cholesky(W).T)
+        from scipy.linalg import sqrtm  # here: the other roots need no scipy.linalg
+
         return np.real(sqrtm(np.linalg.inv(W)))
     except np.linalg.LinAlgError:
         raise SolverError("ellipsoid_svd: the fitted quadric is not an ellipsoid (W not positive "
