@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from pipeline_toys import TOY_SPEC
@@ -55,6 +57,29 @@ def test_every_loaded_blas_is_limited_and_restored():
     assert len(inside) >= 2  # numpy's and SciPy's OpenBLAS are both loaded and limited
     assert inside == [1] * len(inside)
     assert after == before
+
+
+def test_scipy_imported_inside_the_limit_is_limited_too():
+    """The limit loads SciPy's OpenBLAS without importing scipy.linalg (a pipeline without the
+    joint fit never needs it): scipy.linalg imported afterwards links to that library, limited."""
+    code = (
+        "import json, sys\n"
+        "from imupipe.threads import blas_info, limited_blas\n"
+        "with limited_blas() as n:\n"
+        "    early = 'scipy.linalg' in sys.modules\n"
+        "    import scipy.linalg\n"
+        "    inside = [i['num_threads'] for i in blas_info()]\n"
+        "print(json.dumps([early, inside]))\n"
+    )
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", BLAS_THREADS_ENV)}
+    out = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True,
+                         text=True).stdout
+    early, inside = json.loads(out)
+    assert len(inside) >= 2 and inside == [1] * len(inside)
+    wheel_blas = list((Path(importlib.util.find_spec("scipy").origin).parent.parent / "scipy.libs")
+                      .glob("libscipy_openblas*.so*"))
+    assert early != bool(wheel_blas)  # loaded by itself where the wheel keeps it
 
 
 def test_a_batch_job_runs_under_its_limit(monkeypatch, tmp_path, toy_pipeline, session):
