@@ -81,6 +81,23 @@ def test_a_kind_is_registered_only_when_first_looked_up():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+def test_imu_tk_pipeline_runs_without_scipy(shared_data, tmp_path):
+    """imu_tk's pipeline (method B's solvers, the report) needs no SciPy: a run does not import it
+    (its import was a quarter of the whole process)."""
+    root = Path(__file__).resolve().parents[2]
+    code = (
+        "import sys\n"
+        "from imupipe import cli\n"
+        f"status = cli.main(['run', {str(root / 'examples' / 'sessions' / 'imu_tk_xsens.toml')!r}, '--pipeline',\n"
+        f"                   {str(root / 'pipelines' / 'imu_tk.toml')!r}, '--out', {str(tmp_path)!r}, '--quiet'])\n"
+        "assert status == 0, status\n"
+        "loaded = [m for m in sys.modules if m == 'scipy' or m.startswith('scipy.')]\n"
+        "assert not loaded, loaded\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+
+
 def test_reading_a_recording_imports_neither_pydantic_nor_pyarrow_compute():
     """``imupipe ingest``: the params' models and Arrow's compute kernels are a quarter of its
     imports; a reader's tables come out in their schema's types without a cast."""
