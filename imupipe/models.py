@@ -192,7 +192,7 @@ class Calibration:
 
 def triads_to_table(triads: list[TriadCalibration]) -> pa.Table:
     """A table of schema ``calibration``, one row per triad."""
-    table = pa.table({
+    columns = {
         "sensor": [t.sensor for t in triads],
         "M": [t.M.ravel().tolist() for t in triads],
         "b0": [t.b0.tolist() for t in triads],
@@ -200,8 +200,10 @@ def triads_to_table(triads: list[TriadCalibration]) -> pa.Table:
         "T_ref_C": [float(t.T_ref_C) for t in triads],
         "solver": [t.solver for t in triads],
         "details": [json.dumps(_jsonable(dict(t.details))) for t in triads],
-    })
-    return schemas.stamp(table, "calibration")
+    }
+    target = schemas.arrow_schema("calibration")  # built in its types: no cast (pyarrow.compute)
+    return schemas.stamp(pa.table({k: pa.array(v, type=target.field(k).type) for k, v in columns.items()}),
+                         "calibration")
 
 
 def triads_from_table(table: pa.Table) -> list[TriadCalibration]:

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
+from .columns import vectors
 from .errors import SolverError
 
 TRIADS = ("accel", "gyro", "mag")
@@ -91,11 +92,9 @@ class Rests:
         n = table.num_rows
 
         def arr(name: str, width: int | None = None) -> np.ndarray:
-            col = table.column(name).combine_chunks()
             if width is None:
-                return col.to_numpy(zero_copy_only=False).astype(float)
-            flat = col.flatten().to_numpy(zero_copy_only=False).astype(float)
-            return flat.reshape(n, width)
+                return table.column(name).combine_chunks().to_numpy(zero_copy_only=False).astype(float)
+            return vectors(table, name).astype(float).reshape(n, width)
 
         mean, cov, counts = {}, {}, {}
         for s in TRIADS:

@@ -44,6 +44,7 @@ import numpy as np
 import pyarrow as pa
 
 from . import schemas
+from .columns import vectors
 from .models import UNITS
 
 CHI2_SD = 5.0  # beyond this many standard deviations of its spread, chi2/dof is not noise
@@ -360,8 +361,7 @@ def coverage_checks(rests_tables: list[pa.Table], accel: Mapping[str, Any] | Non
     for t in rests_tables[:1]:
         if "accel_mean" not in t.column_names or t.num_rows == 0:
             continue
-        a = np.asarray(t.column("accel_mean").combine_chunks().flatten().to_numpy(zero_copy_only=False),
-                       float).reshape(-1, 3)
+        a = vectors(t, "accel_mean").astype(float)
         a = a[np.isfinite(a).all(axis=1)]
         if accel is not None:
             a = (a - np.asarray(accel.get("b0", [0, 0, 0]), float)) @ np.asarray(accel["M"], float).T
@@ -395,8 +395,7 @@ def drift_checks(rests_tables: list[pa.Table], accel: Mapping[str, Any] | None) 
             continue
         if "temperature" in t.column_names and np.isfinite(_col(t, "temperature")).any():
             continue  # the thermal stage models it (k); this check is for sessions without
-        a = np.asarray(t.column("accel_mean").combine_chunks().flatten().to_numpy(zero_copy_only=False),
-                       float).reshape(-1, 3)
+        a = vectors(t, "accel_mean").astype(float)
         mid = 0.5 * (_col(t, "t_start_s") + _col(t, "t_end_s"))
         ok = np.isfinite(a).all(axis=1) & np.isfinite(mid)
         a, mid = a[ok], mid[ok]

@@ -26,7 +26,7 @@ import numpy as np
 import pyarrow as pa
 
 from .. import schemas
-from ..columns import vectors
+from ..columns import kept_rows, vectors
 from ..errors import require
 from ..io import atomic_path, copy_file, table_digest, write_text
 from ..paths import safe_name, under
@@ -219,7 +219,7 @@ def _by_stage(tables: Mapping[str, pa.Table]) -> dict[tuple[str, str, str], pa.T
         stage, sensor, kind = (_col(t, c) for c in ("stage", "sensor", "kind"))
         for key in sorted(set(zip(stage, sensor, kind, strict=True))):
             mask = (stage == key[0]) & (sensor == key[1]) & (kind == key[2])
-            out[key] = t.filter(pa.array(mask))
+            out[key] = kept_rows(t, mask)
     return out
 
 

@@ -82,7 +82,9 @@ def residual_table(stage: str, sensor: str, kind: str, t_s: np.ndarray, T: np.nd
 
 
 def concat_residuals(tables: list[pa.Table]) -> pa.Table:
-    return schemas.stamp(pa.concat_tables([t.cast(tables[0].schema) for t in tables]), "residuals")
+    first = tables[0].schema  # cast only a table of other types (a cast imports pyarrow.compute)
+    return schemas.stamp(pa.concat_tables([t if t.schema.equals(first) else t.cast(first) for t in tables]),
+                         "residuals")
 
 
 def rest_at_time(rests: Rests, t_s: float) -> int:

@@ -18,6 +18,7 @@ import pyarrow as pa
 from pydantic import Field
 
 from .. import schemas
+from ..columns import kept_rows
 from ..components import Params, Stage
 from ..models import Calibration, TriadCalibration
 from ..observations import Rests, Turns
@@ -109,7 +110,7 @@ def split_control(inputs: Mapping[str, pa.Table], params: SplitParams, solver=No
 
 def _turn_rows(turns: pa.Table, rows: np.ndarray, new_index: np.ndarray | None) -> pa.Table:
     """The turns at ``rows`` renumbered, rest indices mapped through ``new_index``."""
-    sub = turns.filter(pa.array(rows))
+    sub = kept_rows(turns, rows)
     cols = {name: sub.column(name) for name in sub.column_names}
     cols["index"] = pa.array(np.arange(sub.num_rows, dtype=np.int64))
     if new_index is not None:

@@ -24,6 +24,7 @@ import pyarrow as pa
 from pydantic import Field
 
 from .. import schemas
+from ..columns import kept_rows
 from ..components import BoundSolver, Params, Stage
 from ..diagnosis import events as ev
 from ..errors import ReaderError
@@ -128,7 +129,7 @@ def screen(inputs: Mapping[str, pa.Table], params: ScreenParams, solver: BoundSo
         warnings.warn(f"{int(bad.sum())} of {len(bad)} turns left out of the fits: they hold "
                       + ", ".join(f"{n} {k}{'s' if n > 1 else ''}" for k, n in why.items())
                       + " (see the events of the residual map / the verdict)", stacklevel=2)
-    kept = turns.filter(pa.array(~bad))
+    kept = kept_rows(turns, ~bad)
     cols = {name: kept.column(name) for name in kept.column_names}
     cols["index"] = pa.array(np.arange(kept.num_rows, dtype=np.int64))
     kept = schemas.stamp(pa.table(cols, metadata=turns.schema.metadata), "turns")
