@@ -33,6 +33,14 @@ refinement. Prints:
    again (~0.1 s).
 
 ``--process-only`` prints section 4 alone.
+
+Building ``test_imu_calib`` (as done to measure it; its sources are not part of imupipe): Debian's
+``libceres-dev`` and ``libeigen3-dev``, imu_tk's ``include/``, ``src/{calibration,filters,io_utils}.cpp``
+and ``apps/test_imu_calib.cpp`` (upstream, bitbucket.org/alberto_pretto/imu_tk, or a mirror),
+with ``include/imu_tk/visualization.h`` replaced by no-op plots (its verbose output would draw
+with gnuplot and wait for a key), then ``g++ -O3 -DNDEBUG -std=c++17 -I include
+-I /usr/include/eigen3 apps/test_imu_calib.cpp src/*.cpp -lceres -lglog``. It prints the 1/K
+imu_tk published to 0.002 %.
 """
 
 from __future__ import annotations
