@@ -76,3 +76,20 @@ def test_the_per_sample_table_is_stored_as_one_batch(result):
         assert stored.num_record_batches == 1 and stored.schema.field("sensor").type == "string"
         sensors = stored.get_batch(0).column("sensor").to_pylist()
     assert sensors[0] == "accel" and sensors[-1] == "gyro"
+
+
+def test_a_warm_rerun_imports_no_solver_or_plotting_library(result):
+    """Nothing to recompute (a warm batch): the rerun reads its cache and copies its exports,
+    without importing SciPy, Arrow's compute kernels or matplotlib (a warm batch is then ~3 %
+    of a cold one)."""
+    import subprocess
+    import sys
+
+    _, out = result
+    code = ("import sys\n"
+            "from imupipe.cli import main\n"
+            f"assert main(['run', {str(EXAMPLE)!r}, '--out', {str(out.parent)!r}, '--quiet']) == 0\n"
+            "heavy = [m for m in ('scipy', 'pyarrow.compute', 'matplotlib') if m in sys.modules]\n"
+            "assert not heavy, heavy\n")
+    proc = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
