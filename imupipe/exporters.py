@@ -124,7 +124,10 @@ class ResidualMapFiles:
 
                 path = Path(out_dir) / "residuals.parquet"
                 with atomic_path(path) as tmp:
-                    pq.write_table(table, tmp, compression="zstd")
+                    # dictionaries for the text columns only: trying them on a million distinct
+                    # floats was a fifth of the write, for a file 4 % larger (the 1 h session)
+                    strings = [f.name for f in table.schema if pa.types.is_string(f.type)]
+                    pq.write_table(table, tmp, compression="zstd", use_dictionary=strings)
                 written.append(path)
         return written
 
