@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from . import schemas
+from . import schemas, tails
 from .columns import vectors
 from .models import UNITS
 
@@ -418,7 +418,7 @@ def drift_checks(rests_tables: list[pa.Table], accel: Mapping[str, Any] | None) 
         if dof < 8 or rss1 <= 0:
             continue
         F = (rss0 - rss1) / timed.shape[1] / (rss1 / dof)
-        p = f_survival(timed.shape[1], dof, F)
+        p = tails.f_sf(F, timed.shape[1], dof)
         drift = timed @ beta[static.shape[1]:]
         ppm = 1e6 * float(np.ptp(drift)) / g
         warn = p < DRIFT_P and ppm > DRIFT_WARN_PPM
@@ -432,20 +432,6 @@ def drift_checks(rests_tables: list[pa.Table], accel: Mapping[str, Any] | None) 
                        "temperature, or record after the warm-up")
         out.append(Check("drift", "warn" if warn else "pass", detail))
     return out
-
-
-def f_survival(d1: int, d2: float, f: float) -> float:
-    """``P(F > f)`` of the F(d1, d2) distribution for an even ``d1``: ``I_x(d2/2, d1/2)`` with
-    ``x = d2 / (d2 + d1 f)`` is then a finite sum (scipy.special's ``fdtrc`` without its import,
-    0.1-0.2 s of a short run)."""
-    if d1 % 2:
-        raise ValueError(f"f_survival: d1 = {d1} must be even")
-    a, x = 0.5 * d2, d2 / (d2 + d1 * max(f, 0.0))
-    term = total = 1.0
-    for k in range(1, d1 // 2):
-        term *= (a + k - 1) / k * (1.0 - x)
-        total += term
-    return float(x**a * total)
 
 
 def _rss(X: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray]:

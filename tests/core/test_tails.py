@@ -40,3 +40,15 @@ def test_tails_equal_scipy_stats():
         assert _same(tails.norm_isf(q), stats.norm.isf(q)), q
     for v in EDGES:
         assert _same(tails.norm_sf(v), stats.norm.sf(v)), v
+
+
+@pytest.mark.parametrize("d1", [2, 6, 12])
+def test_f_tail_of_an_even_numerator_is_scipys(d1):
+    """The drift check's F-test tail, a finite sum for an even numerator, is scipy.stats' ``f.sf``
+    (to 1e-11: a different formula, not bit for bit)."""
+    for d2 in (1.0, 3.5, 9.0, 40.0, 700.0):
+        for x in (0.0, 1e-3, 0.4, 1.0, 3.0, 12.0, 300.0):
+            want = float(stats.f.sf(x, d1, d2))
+            assert np.isclose(tails.f_sf(x, d1, d2), want, rtol=1e-11, atol=1e-300), (d2, x)
+    with pytest.raises(ValueError, match="even"):
+        tails.f_sf(1.0, 5, 10.0)

@@ -56,18 +56,3 @@ def test_no_drift_without_temperature_does_not_warn(registry):
     assert drift(v)["status"] == "pass", drift(v)["detail"]
     assert not any("drift" in r for r in v["reasons"])
 
-
-@pytest.mark.parametrize("d1", [2, 6, 12])
-def test_f_survival_is_scipys_f_tail(d1):
-    """The drift check's F-test tail, a finite sum for an even numerator, is scipy's ``fdtrc``."""
-    import numpy as np
-    from scipy.special import fdtrc
-
-    from imupipe.verdict import f_survival
-
-    for d2 in (1.0, 3.5, 9.0, 40.0, 700.0):
-        for f in (0.0, 1e-3, 0.4, 1.0, 3.0, 12.0, 300.0):
-            want = float(fdtrc(d1, d2, f))
-            assert np.isclose(f_survival(d1, d2, f), want, rtol=1e-11, atol=1e-300), (d2, f)
-    with pytest.raises(ValueError, match="even"):
-        f_survival(5, 10.0, 1.0)

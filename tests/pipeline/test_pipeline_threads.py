@@ -37,6 +37,15 @@ def test_bad_variable_is_one_line_and_status_2(monkeypatch, tmp_path, capsys):
     assert "IMUPIPE_BLAS_THREADS='0'" in capsys.readouterr().err
 
 
+def _in_fresh_process(code: str):
+    """What ``code`` prints as JSON, run in a fresh process with the BLAS defaults (no thread
+    variables set)."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", BLAS_THREADS_ENV)}
+    out = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True, text=True)
+    return json.loads(out.stdout)
+
+
 def test_every_loaded_blas_is_limited_and_restored():
     """In a fresh process with the BLAS defaults (no OPENBLAS_NUM_THREADS): one thread per core."""
     code = (
@@ -48,11 +57,7 @@ def test_every_loaded_blas_is_limited_and_restored():
         "    inside = count()\n"
         "print(json.dumps([n, before, inside, count()]))\n"
     )
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", BLAS_THREADS_ENV)}
-    out = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True,
-                         text=True).stdout
-    n, before, inside, after = json.loads(out)
+    n, before, inside, after = _in_fresh_process(code)
     assert n == 1
     assert len(inside) >= 2  # numpy's and SciPy's OpenBLAS are both loaded and limited
     assert inside == [1] * len(inside)
@@ -71,11 +76,7 @@ def test_scipy_imported_inside_the_limit_is_limited_too():
         "    inside = [i['num_threads'] for i in blas_info()]\n"
         "print(json.dumps([early, inside]))\n"
     )
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", BLAS_THREADS_ENV)}
-    out = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True,
-                         text=True).stdout
-    early, inside = json.loads(out)
+    early, inside = _in_fresh_process(code)
     assert len(inside) >= 2 and inside == [1] * len(inside)
     wheel_blas = list((Path(importlib.util.find_spec("scipy").origin).parent.parent / "scipy.libs")
                       .glob("libscipy_openblas*.so*"))
