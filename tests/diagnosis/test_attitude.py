@@ -205,6 +205,26 @@ def test_attitude_formed_by_ranges_of_steps_equals_it_formed_at_once(monkeypatch
         assert np.allclose(whole, ranged, rtol=1e-13, atol=1e-13)
 
 
+def test_the_same_rates_again_give_the_attitude_integrated_last():
+    """A fit asks again for the point it has just evaluated: rates equal to the last ones (another
+    array) give that attitude back; other rates are integrated afresh, to the bits of a fresh
+    quadrature's integration."""
+    rng = np.random.default_rng(5)
+    ms = MotionSamples.from_turns(*_motions(rng, m=5))
+    quad = Quadrature(ms)
+    first = Attitude.integrate(quad, ms.y * 0.5)
+    again = Attitude.integrate(quad, (ms.y * 0.5).copy())
+    assert all(getattr(again, n) is getattr(first, n) for n in ("omega", "a", "q_before", "total"))
+    other = ms.y * 0.5
+    other[3, 1] += 1e-12
+    moved = Attitude.integrate(quad, other)
+    fresh = Attitude.integrate(Quadrature(ms), other)
+    assert moved.q_before is not first.q_before
+    for name in ("a", "q_before", "total"):
+        assert np.array_equal(getattr(moved, name), getattr(fresh, name))
+    assert Attitude.integrate(quad, ms.y * 0.5).a is not first.a  # one attitude is kept, the last
+
+
 def test_rotations_before_some_steps_are_the_bits_of_all_steps_rotations():
     """The attitude keeps quaternions and forms the matrices where used: those of a few steps,
     picked or sliced, are the very numbers of all steps' matrices formed at once."""
