@@ -303,6 +303,7 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
         rr = dof = 0.0
         near = _Windows(lin, lib)
         for rows, C in lib.chunks():
+            rows = _as_slice(rows)
             near.add(C)
             gram += C.T @ C
             JgC += lin.J_g[rows].T @ C
@@ -340,6 +341,16 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
         out += near.placed(scored)
         lib.forget()
     return out
+
+
+def _as_slice(rows: np.ndarray) -> slice | np.ndarray:
+    """``rows`` as the slice it spans when it is one ascending run (a library's readings mostly
+    are): a slice of J_l copies one stretch of its arrays and a slice of J_g is a view, where
+    indexing by the rows gathers them one at a time (the same values either way)."""
+    n = len(rows)
+    if n and rows[-1] - rows[0] == n - 1 and np.all(rows[1:] - rows[:-1] == 1):
+        return slice(int(rows[0]), int(rows[-1]) + 1)
+    return rows
 
 
 def _score(lib: _Library, axes, sel, gram, visible, proj, h, scale, unit, g_b=None, draws: int = BOOT_DRAWS

@@ -37,6 +37,23 @@ def test_chunks_change_nothing(fitted, monkeypatch):
             assert b.chi2 == pytest.approx(a.chi2, rel=1e-9) and b.p_bootstrap == a.p_bootstrap
 
 
+def test_rows_read_as_slices_change_no_bit(fitted, monkeypatch):
+    """A chunk's rows, one ascending run, are read as a slice (J_g's view, J_l's stretch): every
+    cell is the very number of the rows gathered one by one, the bootstrap's and the conditional
+    test's included."""
+    assert library._as_slice(np.arange(4, 9)) == slice(4, 9)
+    for rows in (np.array([4, 5, 7]), np.array([5, 4, 6]), np.zeros(0, int)):
+        assert library._as_slice(rows) is rows
+    lin = fitted[-1]
+    for given, r in _cases(lin):
+        sliced = library.structure_cells(lin, given, r, bootstrap=True)
+        monkeypatch.setattr(library, "_as_slice", lambda rows: rows)
+        gathered = library.structure_cells(lin, given, r, bootstrap=True)
+        monkeypatch.undo()
+        assert [(c.sensor, c.regime, c.axes, c.chi2, c.dof, c.windows, c.p_bootstrap) for c in sliced] == \
+            [(c.sensor, c.regime, c.axes, c.chi2, c.dof, c.windows, c.p_bootstrap) for c in gathered]
+
+
 def test_a_fully_visible_cell_is_the_dense_score_test_and_its_bootstrap(fitted):
     lin = fitted[-1]
     libs = library.libraries(Signals(lin))
