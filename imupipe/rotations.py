@@ -159,23 +159,13 @@ def _quat_exp_first(phi: np.ndarray) -> np.ndarray:
     return q
 
 
-QUAT_CHUNK = 32768  # quaternions multiplied at once: their temporaries stay in the cache (4x faster)
-
-
 def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product ``p * q`` of quaternion arrays (..., 4): ``quat_mul_into`` on their
-    components, ``QUAT_CHUNK`` quaternions at a time."""
+    components (the scans multiply component-first arrays with it directly)."""
     p, q = np.broadcast_arrays(p, q)
-    P, Q = p.reshape(-1, 4), q.reshape(-1, 4)
-    out = np.empty(P.shape)
-    k = min(len(P), QUAT_CHUNK)
-    prod, scratch = np.empty((4, k)), np.empty(k)
-    for a in range(0, len(P), QUAT_CHUNK):
-        n = len(P[a:a + QUAT_CHUNK])
-        quat_mul_into(np.ascontiguousarray(P[a:a + n].T), np.ascontiguousarray(Q[a:a + n].T), prod[:, :n],
-                      scratch[:n])
-        out[a:a + n] = prod[:, :n].T
-    return out.reshape(p.shape)
+    out = np.empty((4, *p.shape[:-1]))
+    quat_mul_into(np.moveaxis(p, -1, 0), np.moveaxis(q, -1, 0), out, np.empty(p.shape[:-1]))
+    return np.moveaxis(out, 0, -1)
 
 
 # the Hamilton product's terms per component of p * q: (p's, q's, sign)
