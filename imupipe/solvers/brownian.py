@@ -180,10 +180,77 @@ def estimate_intensity(t_start: np.ndarray, t_end: np.ndarray, resid: np.ndarray
     nu = float(nus[j])
     if i == 0 or C[0].min() - C[i, j] < min_lr:
         return 0.0, float(nus[np.argmin(C[0])])
-    from scipy.optimize import minimize_scalar  # here: importing scipy.optimize costs ~0.25 s
-
     x = np.log10(qs[i] * span / v0)
-    res = minimize_scalar(lambda x: cost(v0 / span * 10.0**x, nu), bounds=(x - 0.5, x + 0.5),
-                          method="bounded", options={"xatol": 0.01})
-    q = v0 / span * 10.0 ** float(res.x) if res.fun < C[i, j] else float(qs[i])
+    x, fx = bounded_minimum(lambda x: cost(v0 / span * 10.0**x, nu), x - 0.5, x + 0.5, xatol=0.01)
+    q = v0 / span * 10.0 ** float(x) if fx < C[i, j] else float(qs[i])
     return q, nu
+
+
+def bounded_minimum(f, lo: float, hi: float, xatol: float = 1e-5, maxiter: int = 500
+                    ) -> tuple[float, float]:
+    """``(x, f(x))`` at a minimum of ``f`` on ``[lo, hi]``: Brent's bounded method, step for step
+    SciPy's ``minimize_scalar(method="bounded")`` (the same points and result, tested). Here,
+    not imported: ``scipy.optimize`` costs ~0.2 s and ~17 MiB resident to a run that needs
+    nothing else from it (``bench/scaling.py --without-map``)."""
+    sqrt_eps = np.sqrt(2.2e-16)
+    golden_mean = 0.5 * (3.0 - np.sqrt(5.0))
+    a, b = lo, hi
+    fulc = a + golden_mean * (b - a)
+    nfc, xf = fulc, fulc
+    rat = e = 0.0
+    fx = f(xf)
+    num = 1
+    ffulc = fnfc = fx
+    xm = 0.5 * (a + b)
+    tol1 = sqrt_eps * np.abs(xf) + xatol / 3.0
+    tol2 = 2.0 * tol1
+    while np.abs(xf - xm) > (tol2 - 0.5 * (b - a)):
+        golden = True
+        if np.abs(e) > tol1:  # a parabola through the three best points
+            golden = False
+            r = (xf - nfc) * (fx - ffulc)
+            q = (xf - fulc) * (fx - fnfc)
+            p = (xf - fulc) * q - (xf - nfc) * r
+            q = 2.0 * (q - r)
+            if q > 0.0:
+                p = -p
+            q = np.abs(q)
+            r = e
+            e = rat
+            if np.abs(p) < np.abs(0.5 * q * r) and q * (a - xf) < p < q * (b - xf):  # acceptable
+                rat = (p + 0.0) / q
+                x = xf + rat
+                if (x - a) < tol2 or (b - x) < tol2:
+                    rat = tol1 * (np.sign(xm - xf) + ((xm - xf) == 0))
+            else:
+                golden = True
+        if golden:  # a golden-section step
+            e = (a if xf >= xm else b) - xf
+            rat = golden_mean * e
+        x = xf + (np.sign(rat) + (rat == 0)) * np.maximum(np.abs(rat), tol1)
+        fu = f(x)
+        num += 1
+        if fu <= fx:
+            if x >= xf:
+                a = xf
+            else:
+                b = xf
+            fulc, ffulc = nfc, fnfc
+            nfc, fnfc = xf, fx
+            xf, fx = x, fu
+        else:
+            if x < xf:
+                a = x
+            else:
+                b = x
+            if fu <= fnfc or nfc == xf:
+                fulc, ffulc = nfc, fnfc
+                nfc, fnfc = x, fu
+            elif fu <= ffulc or fulc == xf or fulc == nfc:
+                fulc, ffulc = x, fu
+        xm = 0.5 * (a + b)
+        tol1 = sqrt_eps * np.abs(xf) + xatol / 3.0
+        tol2 = 2.0 * tol1
+        if num >= maxiter:
+            break
+    return xf, fx

@@ -6,7 +6,7 @@ import numpy as np
 from method_b_synth import G, make_session
 
 from imupipe.models import TriadCalibration
-from imupipe.solvers.brownian import estimate_intensity, reml_cost
+from imupipe.solvers.brownian import bounded_minimum, estimate_intensity, reml_cost
 from imupipe.solvers.joint_ml import JointML, JointMLParams, JointObservations
 
 TINY_RW = 1e-12  # rad/s/sqrt(s): q = 1e-24, far below any rest's white variance
@@ -102,3 +102,28 @@ def test_a_weak_walk_the_detection_misses_is_still_estimated_at_the_likelihoods_
     np.testing.assert_array_equal(estimated[~missed], detected[~missed])
     assert np.all(estimated[missed] > 0)
     assert 0.3 * q < np.median(estimated) < 3 * q
+
+
+def test_bounded_minimum_takes_scipys_steps_to_the_bit():
+    from scipy.optimize import minimize_scalar
+
+    rng = np.random.default_rng(2)
+    n = 80
+    t_start = np.arange(n) * 8.0
+    t_end, var = t_start + 4.0, np.full(n, 1e-8)
+    r = np.cumsum(rng.normal(size=n) * np.sqrt(1e-10 * 8.0)) + rng.normal(size=n) * 1e-4
+    X = np.ones((n, 1))
+
+    def reml(x):
+        return reml_cost(10.0**x, t_start, t_end, r, var, X)
+
+    cases = [(reml, -11.5, -8.5, 0.01), (lambda x: (x - 2) * x * (x + 2) ** 2, -3.0, -1.0, 1e-5),
+             (lambda x: abs(x - 0.3), 0.0, 1.0, 1e-5), (lambda x: -x, 0.0, 1.0, 1e-5),  # at an edge
+             (lambda x: 1.0, 0.0, 1.0, 1e-5)]  # flat
+    for f, lo, hi, xatol in cases:
+        seen, ours_seen = [], []
+        ref = minimize_scalar(lambda x: seen.append(x) or f(x), bounds=(lo, hi), method="bounded",
+                              options={"xatol": xatol})
+        x, fx = bounded_minimum(lambda x: ours_seen.append(x) or f(x), lo, hi, xatol=xatol)
+        assert ours_seen == seen
+        assert (x, fx) == (ref.x, ref.fun)
