@@ -48,6 +48,7 @@ class Sampler(threading.Thread):
         while not self.done.is_set():
             frame = sys._current_frames().get(self.target)
             self.samples.append((time.perf_counter() - self.t0, resident_mib(), where(frame) if frame else "-"))
+            del frame  # held while waiting, it would keep the run's locals alive (a report's figures)
             self.done.wait(self.every)
 
 

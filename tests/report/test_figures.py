@@ -82,6 +82,35 @@ def test_a_figure_drawn_before_from_the_same_values_is_copied_not_drawn(tmp_path
     assert (tmp_path / "d" / "report.md").is_file()
 
 
+def test_each_figure_is_freed_once_saved_and_nothing_is_left_frozen(tmp_path, monkeypatch):
+    """A figure is a web of reference cycles holding its raster: each is gone by the time the
+    next is drawn, without waiting for the collector, and the report leaves no object frozen."""
+    import gc
+    import weakref
+
+    from imupipe.report import exporter
+
+    figures, alive_when_drawn = [], []
+    drawn = exporter._drawn
+
+    def spy(title, draw, panels):
+        alive_when_drawn.append(sum(f() is not None for f in figures))
+        fig = drawn(title, draw, panels)
+        figures.append(weakref.ref(fig))
+        return fig
+
+    monkeypatch.setattr(exporter, "_drawn", spy)
+    gc.disable()  # only the report's own collections
+    try:
+        exporter.REPORT.export(_tables(0.01), {"session": "s"}, tmp_path)
+        assert len(figures) == 2
+        assert alive_when_drawn == [0, 0]
+        assert all(f() is None for f in figures)
+        assert gc.get_freeze_count() == 0
+    finally:
+        gc.enable()
+
+
 def test_a_figure_key_follows_every_value_its_drawing_holds():
     from imupipe.report.exporter import figure_key
 
