@@ -294,6 +294,7 @@ class Attitude:
         last = quad.last_integrated
         if last is not None and np.array_equal(last[0], omega):
             return cls(quad, *last)
+        quad.last_integrated = last = None  # let its arrays go before the new ones are formed
         a = quad.A @ omega if len(quad.step) else np.zeros((0, 3))
         seg = quad.seg
         q_before = np.empty((len(a), 4))
