@@ -184,12 +184,14 @@ class BlockTridiagonal:
             Zd[i] = 0.5 * (Zd[i] + Zd[i].T)
         return Zd, Zl
 
-    def row_forms(self, J: sp.csr_matrix, chunk: int = 8192) -> np.ndarray:
+    def row_forms(self, J: sp.csr_matrix, chunk: int = 2048) -> np.ndarray:
         """(N,) ``diag(J A^-1 J^T)`` for a sparse ``J`` whose rows touch two consecutive stages
         at most, from the selected inverse: per row, the quadratic form of its few entries with
         the inverse's block on their columns. Consecutive rows on the same columns (the samples
         of one knot interval) share that block; nothing of size N x q is formed, and the rows
-        are taken ``chunk`` at a time."""
+        are taken ``chunk`` at a time (each row's form alone: the same bits for any chunk; a
+        chunk's (rows, width, width) blocks are a few MiB, where 8192 rows made the leverage
+        the refine stage's peak)."""
         J = sp.csr_matrix(J)
         if not J.has_canonical_format:
             J = J.copy()
