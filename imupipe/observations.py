@@ -10,6 +10,8 @@ degC. "raw" means in the sensor's own axes, before correction.
 
 from __future__ import annotations
 
+import itertools
+
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -165,14 +167,21 @@ class Turns:
         xyz = [gyro.column(c).to_numpy() for c in ("x", "y", "z")]
         starts = turns.column("t_start_ns").to_numpy()
         ends = turns.column("t_end_ns").to_numpy()
-        ts, ws = [], []
-        for a, b in zip(starts, ends, strict=True):
-            i0, i1 = np.searchsorted(tg, a, "left"), np.searchsorted(tg, b, "right")
-            ts.append((tg[i0:i1] - t0_ns) * 1e-9)
-            # each turn's own copy: views would keep a (k, 3) copy of the whole recording alive
-            ws.append(np.column_stack([x[i0:i1] for x in xyz]))
+        i0, i1 = np.searchsorted(tg, starts, "left"), np.searchsorted(tg, ends, "right")
+        # the turns' samples copied once, one after the other, and each turn a view of them (not
+        # of the whole recording): the joint model's motion samples are these very arrays
+        # (``MotionSamples.from_turns``), read-only so that no one changes them for the other
+        take = np.concatenate([np.arange(a, b) for a, b in zip(i0, i1, strict=True)] + [np.zeros(0, np.int64)])
+        t_all = (tg[take] - t0_ns) * 1e-9
+        w_all = np.empty((len(take), 3))
+        for k, x in enumerate(xyz):
+            w_all[:, k] = x[take]
+        t_all.flags.writeable = w_all.flags.writeable = False
+        edges = np.r_[0, np.cumsum(i1 - i0)]
         return cls(turns.column("rest_before").to_numpy().astype(np.int64),
-                   turns.column("rest_after").to_numpy().astype(np.int64), tuple(ts), tuple(ws))
+                   turns.column("rest_after").to_numpy().astype(np.int64),
+                   tuple(t_all[a:b] for a, b in itertools.pairwise(edges)),
+                   tuple(w_all[a:b] for a, b in itertools.pairwise(edges)))
 
 
 # --------------------------------------------------------------------------- solver inputs

@@ -184,6 +184,25 @@ def by_motion(motion: np.ndarray, count: int) -> list[slice]:
     return [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
 
 
+def _joined(parts: list[np.ndarray]) -> np.ndarray:
+    """``np.concatenate(parts)``; the array they are views of, without a copy, when they lie one
+    after the other and cover it whole (``Turns.from_tables``' turns: a model of them holds their
+    samples once)."""
+    base = parts[0].base
+    if (base is not None and base.flags.c_contiguous and base.dtype == np.float64
+            and base.shape[1:] == parts[0].shape[1:]
+            and all(x.base is base and x.flags.c_contiguous for x in parts)
+            and sum(len(x) for x in parts) == len(base)):
+        at = base.__array_interface__["data"][0]
+        for x in parts:
+            if len(x) and x.__array_interface__["data"][0] != at:  # (an empty view's may be anywhere)
+                break
+            at += x.nbytes
+        else:
+            return base
+    return np.concatenate(parts)
+
+
 @dataclass(frozen=True)
 class MotionSamples:
     """The gyro samples of m motions, flattened: ``t`` (N,) s, ``y`` (N, 3) raw gyro, ``motion``
@@ -203,8 +222,8 @@ class MotionSamples:
         end = np.array([x[-1] if len(x) else np.nan for x in t], float)
         if not m or not sum(len(x) for x in t):
             return cls(np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64), origin, end)
-        return cls(np.concatenate([np.asarray(x, float) for x in t]),
-                   np.concatenate([np.asarray(x, float).reshape(-1, 3) for x in y]),
+        return cls(_joined([np.asarray(x, float) for x in t]),
+                   _joined([np.asarray(x, float).reshape(-1, 3) for x in y]),
                    np.repeat(np.arange(m), [len(x) for x in t]).astype(np.int64), origin, end)
 
     def __len__(self) -> int:
@@ -273,16 +292,15 @@ class Quadrature:
 class Attitude:
     """Integrated rotations of every motion under calibrated rates ``omega`` (N, 3) rad/s.
 
-    ``a`` (S, 3) the steps' rotation vectors, ``q_before`` (S, 4) the rotation (body at the
-    step's start -> body at the motion's start) before each step as a quaternion (its matrices,
-    ``rotations_before``, are formed where used: 9 numbers a step held through a fit instead of
-    4), ``total`` (m, 3, 3) each motion's rotation at its last sample (identity for motions of
-    fewer than two samples).
+    ``q_before`` (S, 4) the rotation (body at the step's start -> body at the motion's start)
+    before each step as a quaternion (its matrices, ``rotations_before``, are formed where used:
+    9 numbers a step held through a fit instead of 4), ``total`` (m, 3, 3) each motion's rotation
+    at its last sample (identity for motions of fewer than two samples). The steps' rotation
+    vectors are formed where used too (``quad.A[s] @ omega``, the same bits by rows as at once).
     """
 
     quad: Quadrature
     omega: np.ndarray
-    a: np.ndarray
     q_before: np.ndarray
     total: np.ndarray
 
@@ -295,20 +313,19 @@ class Attitude:
         if last is not None and np.array_equal(last[0], omega):
             return cls(quad, *last)
         quad.last_integrated = last = None  # let its arrays go before the new ones are formed
-        a = quad.A @ omega if len(quad.step) else np.zeros((0, 3))
         seg = quad.seg
-        q_before = np.empty((len(a), 4))
+        q_before = np.empty((len(quad.step), 4))
         total = np.tile(np.eye(3), (quad.samples.count, 1, 1))
         for lo, hi in quad.ranges:  # whole motions: a product never crosses a range's edge
-            q = segmented_scan(quat_exp(a[lo:hi]), seg[lo:hi])  # after each step
+            q = segmented_scan(quat_exp(quad.A[lo:hi] @ omega), seg[lo:hi])  # after each step
             prev = q_before[lo:hi]
             prev[0] = [1.0, 0.0, 0.0, 0.0]
             prev[1:] = q[:-1]
             prev[np.r_[True, seg[lo + 1:hi] != seg[lo:hi - 1]]] = [1.0, 0.0, 0.0, 0.0]
             ends = slice(*np.searchsorted(quad.last, [lo, hi]))
             total[seg[quad.last[ends]]] = quat_to_matrix(q[quad.last[ends] - lo])
-        quad.last_integrated = (omega, a, q_before, total)  # arrays, not the attitude: no cycle through quad
-        return cls(quad, omega, a, q_before, total)
+        quad.last_integrated = (omega, q_before, total)  # arrays, not the attitude: no cycle through quad
+        return cls(quad, omega, q_before, total)
 
     def rotations_before(self, steps: np.ndarray | slice) -> np.ndarray:
         """(k, 3, 3) the rotation before each of ``steps`` (indices or a slice of steps)."""
@@ -322,7 +339,7 @@ class Attitude:
         for lo in range(0, len(pts.h), STEP_CHUNK):
             c = slice(lo, lo + STEP_CHUNK)
             h = pts.h[c]
-            R0 = self.rotations_before(np.maximum(h, 0)) if len(self.a) else np.tile(np.eye(3), (len(h), 1, 1))
+            R0 = self.rotations_before(np.maximum(h, 0)) if len(self.q_before) else np.tile(np.eye(3), (len(h), 1, 1))
             R0 = np.where((h >= 0)[:, None, None], R0, np.eye(3))
             np.matmul(R0, quat_to_matrix(quat_exp(pts.W[c] @ self.omega)), out=out[c])
         return out
@@ -346,7 +363,8 @@ class Attitude:
         parameter change (hi - lo, 3, P) and their running sums within each motion (``running``;
         else None)."""
         s = slice(lo, hi)
-        per = (self.rotations_before(s) @ left_jacobian(self.a[s])) @ weighted(self.quad.A[s], D)
+        A = self.quad.A[s]
+        per = (self.rotations_before(s) @ left_jacobian(A @ self.omega)) @ weighted(A, D)
         return per, segmented_cumsum(per, self.quad.seg[s]) if running else None
 
     def sensitivity(self, D: np.ndarray, pts: Points) -> np.ndarray:
@@ -356,7 +374,7 @@ class Attitude:
         few instants at a time: no (S, 3, P) array, which a long recording's fit would hold)."""
         P = D.shape[2]
         k = len(pts.h)
-        if not k or not len(self.a):
+        if not k or not len(self.q_before):
             return np.zeros((k, 3, P))
         hh = np.maximum(pts.h, 0)
         if (pts.h >= 0).any():
@@ -375,6 +393,6 @@ class Attitude:
     def end_sensitivity(self, D: np.ndarray) -> np.ndarray:
         """(m, 3, P) the same at each motion's last sample (zeros for motions without steps)."""
         out = np.zeros((self.quad.samples.count, 3, D.shape[2]))
-        if len(self.a):
+        if len(self.q_before):
             out[self.quad.seg[self.quad.last]] = self._end_totals(D)
         return out

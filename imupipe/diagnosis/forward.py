@@ -409,14 +409,19 @@ class JointModel:
         wa, wb = self.walk_states(x_l, "wg")
         j = ms.motion
         lam = self.lam_gyro[:, None]
-        # (N, 3) arrays formed in place (the same operations in the same order): this is the
-        # refine stage's peak, where each temporary costs 3.6 MiB at 1 h
-        e = ms.y - P["b_g"]
+        # (N, 3) arrays formed in place (the same operations in the same order), e in the
+        # derivatives' first columns: this is the refine stage's peak (3.6 MiB each at 1 h)
+        coef = np.empty((N, 7 if derivatives else 3))
+        e = coef[:, :3]
+        np.subtract(ms.y, P["b_g"], out=e)
         e -= np.outer(self.dT_gyro, P["k_g"])
         if N:
             walk = wb[self.p[j]]
             walk *= 1 - lam
-            walk += lam * wa[self.qr[j]]
+            end = wa[self.qr[j]]
+            end *= lam
+            walk += end
+            del end
             e -= walk
             del walk
         omega = e @ P["M_g"].T
@@ -428,9 +433,6 @@ class JointModel:
             basis[c, np.arange(3), 3 * np.arange(3) + c] = 1.0
         for b in range(4):
             basis[3 + b, :, 9 + 3 * b:12 + 3 * b] = -P["M_g"]
-        coef = np.empty((N, 7))
-        coef[:, :3] = e
-        del e
         coef[:, 3] = 1.0
         coef[:, 4] = self.dT_gyro
         coef[:, 5] = 1 - lam[:, 0]
@@ -504,6 +506,7 @@ class JointModel:
             if D is not None and not with_globals:
                 D = RateDerivatives(D.coef, D.basis[:, :, 15:])
             att = Attitude.integrate(self.quad, omega)
+            omega = att.omega  # the same numbers; when the attitude is the one kept, its rates alone
         u, du = self.gravity(x_l)
         w = np.einsum("mij,mj->mi", att.total, u[self.qr]) if self.m else np.zeros((0, 3))
         u0p, Bp = self.u0[self.p], self.B[self.p]

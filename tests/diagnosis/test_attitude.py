@@ -211,15 +211,15 @@ def test_the_same_rates_again_give_the_attitude_integrated_last():
     quad = Quadrature(ms)
     first = Attitude.integrate(quad, ms.y * 0.5)
     again = Attitude.integrate(quad, (ms.y * 0.5).copy())
-    assert all(getattr(again, n) is getattr(first, n) for n in ("omega", "a", "q_before", "total"))
+    assert all(getattr(again, n) is getattr(first, n) for n in ("omega", "q_before", "total"))
     other = ms.y * 0.5
     other[3, 1] += 1e-12
     moved = Attitude.integrate(quad, other)
     fresh = Attitude.integrate(Quadrature(ms), other)
     assert moved.q_before is not first.q_before
-    for name in ("a", "q_before", "total"):
+    for name in ("q_before", "total"):
         assert np.array_equal(getattr(moved, name), getattr(fresh, name))
-    assert Attitude.integrate(quad, ms.y * 0.5).a is not first.a  # one attitude is kept, the last
+    assert Attitude.integrate(quad, ms.y * 0.5).q_before is not first.q_before  # one attitude is kept, the last
 
 
 def test_the_attitude_kept_is_let_go_before_other_rates_are_integrated(monkeypatch):
@@ -233,7 +233,7 @@ def test_the_attitude_kept_is_let_go_before_other_rates_are_integrated(monkeypat
     ms = MotionSamples.from_turns(*_motions(rng, m=3))
     quad = Quadrature(ms)
     Attitude.integrate(quad, ms.y * 0.5)
-    kept = weakref.ref(quad.last_integrated[2])  # its q_before
+    kept = weakref.ref(quad.last_integrated[1])  # its q_before
     seen = []
     scan = attitude.segmented_scan
     monkeypatch.setattr(attitude, "segmented_scan", lambda q, seg: (seen.append(kept()), scan(q, seg))[1])
@@ -248,7 +248,7 @@ def test_rotations_before_some_steps_are_the_bits_of_all_steps_rotations():
     ms = MotionSamples.from_turns(*_motions(rng, m=5))
     att = Attitude.integrate(Quadrature(ms), ms.y * 0.5)
     every = att.rotations_before(slice(None))
-    picked = rng.integers(0, len(att.a), 40)
+    picked = rng.integers(0, len(att.q_before), 40)
     assert np.array_equal(att.rotations_before(picked), every[picked])
     assert np.array_equal(att.rotations_before(slice(7, 29)), every[7:29])
     starts = np.r_[0, np.flatnonzero(np.diff(att.quad.seg)) + 1]  # each motion's first step: no rotation yet
@@ -268,7 +268,7 @@ def test_sensitivity_forms_the_sums_before_steps_over_its_instants_motions_alone
     quad = Quadrature(ms)
     pts = quad.points(ms.t + 0.002, ms.motion)
     att = Attitude.integrate(quad, ms.y * 0.5)
-    per, run = att._per_step(D, 0, len(att.a))  # every step's, and their running sums, at once
+    per, run = att._per_step(D, 0, len(att.q_before))  # every step's, and their running sums, at once
     ends = att.end_sensitivity(D)
     np.testing.assert_array_equal(ends[quad.seg[quad.last]], run[quad.last])
     hh = np.maximum(pts.h, 0)

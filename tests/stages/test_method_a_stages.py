@@ -10,6 +10,7 @@ import pytest
 
 from imupipe import schemas
 from imupipe.components import BoundSolver
+from imupipe.diagnosis.attitude import MotionSamples
 from imupipe.errors import SolverError
 from imupipe.models import triads_from_table
 from imupipe.observations import Rests, Turns
@@ -175,12 +176,18 @@ def test_turns_round_trip_through_tables(session):
     turns = Turns.from_tables(session["seg"]["turns"], session["d"]["gyro"])
     assert len(turns) == session["seg"]["turns"].num_rows
     assert all(len(t) == len(w) for t, w in zip(turns.t, turns.gyro, strict=True))
-    # each turn's samples are its own: no view keeps the whole recording's (k, 3) copy alive
+    # the turns' samples, copied once one after the other: no view keeps the whole recording's
+    # (k, 3) copy alive, and the joint model's motion samples are these arrays, read-only
     g = session["d"]["gyro"]
     starts = np.searchsorted(g.column("t_ns").to_numpy(), session["seg"]["turns"].column("t_start_ns").to_numpy())
+    held = sum(len(w) for w in turns.gyro)
+    assert held < g.num_rows
     for i, w in zip(starts, turns.gyro, strict=True):
-        assert w.base is None or w.base.size == w.size
+        assert w.base is turns.gyro[0].base and w.base.shape == (held, 3) and not w.flags.writeable
         assert np.array_equal(w, np.column_stack([g.column(c).to_numpy()[i:i + len(w)] for c in "xyz"]))
+    samples = MotionSamples.from_turns(turns.t, turns.gyro)
+    assert samples.y is turns.gyro[0].base and samples.t is turns.t[0].base
+    assert np.array_equal(MotionSamples.from_turns(turns.t[1:], turns.gyro[1:]).y, np.concatenate(turns.gyro[1:]))
 
 
 def test_accel_without_thermal_and_detected_references(session):
