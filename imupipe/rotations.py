@@ -322,6 +322,46 @@ def turn_rotations(rate: np.ndarray, dt: np.ndarray, M: np.ndarray | None = None
     return quat_to_matrix(_turn_products(rate, dt, M, turns))  # normalises once
 
 
+def _ragged_products(t: Sequence[np.ndarray], rate: Sequence[np.ndarray],
+                     intervals: Callable[[np.ndarray], np.ndarray], bias: np.ndarray | None,
+                     M: np.ndarray | None) -> np.ndarray:
+    """``_turn_products`` of ``pad_turns(t, rate, intervals)`` less ``bias`` (m, 3) per turn,
+    without padding every turn to the longest (at 1 h, 23 MiB for 5 MiB of samples, where a
+    turntable turn lasts 20 s): each of its groups (turns within a factor two in length) is
+    padded alone, and its products are formed from the same rows: the same numbers."""
+    m = len(t)
+    out = np.empty((m, 4))
+    length = np.ones(m, np.int64)
+    for i, ti in enumerate(t):
+        d = intervals(np.asarray(ti, float)) != 0
+        if d.any():
+            length[i] = len(d) - np.argmax(d[::-1])
+    group = np.ceil(np.log2(length)).astype(int)
+    for g in np.unique(group):
+        idx = np.flatnonzero(group == g)
+        r, dt = pad_turns([t[i] for i in idx], [rate[i] for i in idx], intervals)
+        if bias is not None:
+            r -= np.broadcast_to(bias, (m, 3))[idx][:, None, :]
+        out[idx] = _turn_products(r, dt, M)
+    return out
+
+
+def ragged_turn_quaternions(t: Sequence[np.ndarray], rate: Sequence[np.ndarray],
+                            intervals: Callable[[np.ndarray], np.ndarray] = centred_intervals,
+                            bias: np.ndarray | None = None, M: np.ndarray | None = None) -> np.ndarray:
+    """``turn_quaternions`` of ``pad_turns(t, rate, intervals)`` with each turn's ``bias``
+    (m, 3) subtracted, the turns padded by groups of similar length, not all to the longest."""
+    q = _ragged_products(t, rate, intervals, bias, M)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def ragged_turn_rotations(t: Sequence[np.ndarray], rate: Sequence[np.ndarray],
+                          intervals: Callable[[np.ndarray], np.ndarray] = centred_intervals,
+                          bias: np.ndarray | None = None, M: np.ndarray | None = None) -> np.ndarray:
+    """``turn_rotations`` likewise (``ragged_turn_quaternions``)."""
+    return quat_to_matrix(_ragged_products(t, rate, intervals, bias, M))
+
+
 def carry(R: np.ndarray, v: np.ndarray) -> np.ndarray:
     """World-fixed vectors ``v`` (m, 3) seen in the body after it turned by ``R`` (m, 3, 3):
     ``R^T v``, Eq. (2.16)."""

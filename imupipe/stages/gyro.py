@@ -23,7 +23,7 @@ from ..components import BoundSolver, Params, Stage
 from ..errors import ConfigError
 from ..models import triads_to_table
 from ..observations import GyroObservations, Rests, Turns
-from ..rotations import carry, hold_intervals, pad_turns, turn_rotations
+from ..rotations import carry, hold_intervals, ragged_turn_rotations
 from ._calib_common import (
     add_thermal_variance,
     concat_residuals,
@@ -109,11 +109,9 @@ def calibrate_gyro(inputs: Mapping[str, pa.Table], params: GyroParams, solver: B
     res_rest = residual_table("calibrate_gyro", "gyro", "rest", mid, rests.temperature, bias,
                               cal.bias(model_T(rests.temperature)), sigma)
     # per turn: gravity after vs gravity before carried through the calibrated rotation
-    rate, dt = pad_turns(turns.t, turns.gyro, hold_intervals)
     T_turn = model_T(0.5 * (rests.temperature[turns.before] + rests.temperature[turns.after]))
-    rate -= cal.bias(T_turn)[:, None, :]
     g0, g1 = gravity[turns.before], gravity[turns.after]
-    pred = carry(turn_rotations(rate, dt, cal.M), g0)
+    pred = carry(ragged_turn_rotations(turns.t, turns.gyro, hold_intervals, cal.bias(T_turn), cal.M), g0)
     res_turn = residual_table("calibrate_gyro", "gyro", "turn",
                               np.array([0.5 * (t[0] + t[-1]) for t in turns.t]),
                               np.full(len(turns), np.nan), g1, pred, None)

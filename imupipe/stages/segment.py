@@ -34,7 +34,7 @@ from .. import schemas
 from ..components import BoundSolver, Params, Stage
 from ..errors import SolverError
 from ..observations import Rests
-from ..rotations import hold_intervals, pad_turns, quat_to_rotvec, turn_quaternions
+from ..rotations import hold_intervals, quat_to_rotvec, ragged_turn_quaternions
 
 
 EDGE_MEAN_S = 0.05  # s: the short mean of the raw signals that places the edges
@@ -473,8 +473,8 @@ def turns_table(rests: Rests, t_g: np.ndarray, w: np.ndarray, t0: int) -> pa.Tab
         bias = 0.5 * (rests.mean["gyro"][j] + rests.mean["gyro"][j + 1])
         ts.append((t_g[i0:i1] - t0) * 1e-9)
         ws.append(w[i0:i1] - bias)
-    angles = np.degrees(np.linalg.norm(quat_to_rotvec(turn_quaternions(
-        *pad_turns(ts, ws, hold_intervals))), axis=1)) if m > 0 else np.zeros(0)
+    angles = np.degrees(np.linalg.norm(quat_to_rotvec(ragged_turn_quaternions(
+        ts, ws, hold_intervals)), axis=1)) if m > 0 else np.zeros(0)
     table = pa.table({
         "index": np.arange(m, dtype=np.int64), "rest_before": np.arange(m, dtype=np.int64),
         "rest_after": np.arange(1, m + 1, dtype=np.int64), "t_start_ns": starts, "t_end_ns": ends,

@@ -24,7 +24,7 @@ from .. import schemas
 from ..components import BoundSolver, Params, Stage
 from ..models import TriadCalibration
 from ..observations import Rests, Turns
-from ..rotations import carry, hold_intervals, pad_turns, quat_to_matrix, turn_quaternions
+from ..rotations import carry, hold_intervals, quat_to_matrix, ragged_turn_quaternions
 from ..solvers.gyro_rodrigues import angle_error, rodrigues_error
 from ._calib_common import model_T, need_triad
 
@@ -52,9 +52,7 @@ def turn_errors(rests: Rests, turns: Turns, acc: TriadCalibration | None,
         M, bias = gyr.M, gyr.bias(model_T(0.5 * (T[turns.before] + T[turns.after])))
     else:
         M, bias = np.eye(3), 0.5 * (w[turns.before] + w[turns.after])
-    rate, dt = pad_turns(turns.t, turns.gyro, hold_intervals)
-    rate -= bias[:, None, :]
-    q = turn_quaternions(rate, dt, M)
+    q = ragged_turn_quaternions(turns.t, turns.gyro, hold_intervals, bias, M)
     q = q * np.where(q[:, :1] < 0, -1.0, 1.0)
     Y = q[:, 1:] / np.where(np.abs(q[:, :1]) > 1e-12, q[:, :1], 1e-12)  # e tan(chi/2)
     g0, g1 = g[turns.before], g[turns.after]

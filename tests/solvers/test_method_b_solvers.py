@@ -9,12 +9,17 @@ from method_b_synth import G, make_session
 from imupipe.errors import SolverError
 from imupipe.observations import EllipsoidObservations, GyroObservations, Turns
 from imupipe.rotations import (
+    centred_intervals,
     compose,
     pad_turns,
     quat_exp,
     quat_mul,
+    hold_intervals,
     quat_to_matrix,
+    ragged_turn_quaternions,
+    ragged_turn_rotations,
     rotation_angle,
+    turn_quaternions,
     turn_rotations,
 )
 from imupipe.solvers.ellipsoid_svd import EllipsoidSVD, EllipsoidSVDParams, fit_quadric
@@ -62,6 +67,26 @@ def test_turns_of_mixed_lengths_are_the_products_of_the_whole_padded_arrays(monk
     corrected = quat_to_matrix(compose(quat_exp((rate @ M.T)[pick] * dt[pick][..., None])))
     monkeypatch.setattr("imupipe.rotations.TURN_CHUNK", 7)
     assert np.array_equal(turn_rotations(rate, dt, M, pick), corrected)
+
+
+def test_ragged_turns_are_the_padded_turns_products_to_the_bit(monkeypatch):
+    """Turns padded by groups of similar length, not all to the longest: the same numbers as the
+    padded arrays less each turn's bias, with and without M, for both kinds of interval."""
+    rng = np.random.default_rng(8)
+    lengths = [*rng.integers(300, 420, 70), 2000, 150, 1, 0, 700]
+    t = [np.sort(rng.uniform(0, n * 0.01, n)) for n in lengths]
+    w = [rng.normal(size=(n, 3)) for n in lengths]
+    bias = 0.01 * rng.normal(size=(len(lengths), 3))
+    M = np.eye(3) + 0.02 * rng.normal(size=(3, 3))
+    monkeypatch.setattr("imupipe.rotations.TURN_CHUNK", 16)  # groups of several chunks
+    for intervals in (hold_intervals, centred_intervals):
+        rate, dt = pad_turns(t, w, intervals)
+        rate -= bias[:, None, :]
+        for m in (None, M):
+            assert np.array_equal(ragged_turn_quaternions(t, w, intervals, bias, m), turn_quaternions(rate, dt, m))
+            assert np.array_equal(ragged_turn_rotations(t, w, intervals, bias, m), turn_rotations(rate, dt, m))
+        rate, dt = pad_turns(t, w, intervals)
+        assert np.array_equal(ragged_turn_quaternions(t, w, intervals), turn_quaternions(rate, dt))
 
 
 def test_quat_exp_small_angles_match_series():
