@@ -313,11 +313,12 @@ class Attitude:
         if last is not None and np.array_equal(last[0], omega):
             return cls(quad, *last)
         quad.last_integrated = last = None  # let its arrays go before the new ones are formed
+        a = quad.A @ omega if len(quad.step) else np.zeros((0, 3))  # the steps' rotation vectors
         seg = quad.seg
-        q_before = np.empty((len(quad.step), 4))
+        q_before = np.empty((len(a), 4))
         total = np.tile(np.eye(3), (quad.samples.count, 1, 1))
         for lo, hi in quad.ranges:  # whole motions: a product never crosses a range's edge
-            q = segmented_scan(quat_exp(quad.A[lo:hi] @ omega), seg[lo:hi])  # after each step
+            q = segmented_scan(quat_exp(a[lo:hi]), seg[lo:hi])  # after each step
             prev = q_before[lo:hi]
             prev[0] = [1.0, 0.0, 0.0, 0.0]
             prev[1:] = q[:-1]
