@@ -11,7 +11,6 @@ degC. "raw" means in the sensor's own axes, before correction.
 from __future__ import annotations
 
 import itertools
-
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
