@@ -318,20 +318,22 @@ def structure_cells(lin: Linearised, given: np.ndarray | None = None, r: np.ndar
         z_g, z_l = lin.system.solve(JgC, JlC)
         # C'(I - P)C and C'(I - P)r without forming (I - P)C, which would fill every row
         proj = gram - JgC.T @ z_g - JlC.T @ z_l
-        # what the nominal parameters alone leave visible: the walks held still (the columns are
-        # zero on the walks' rows, so only the system differs)
-        v_g, v_l = rigid.solve(JgC, JlC)
-        visible = gram - JgC.T @ v_g - JlC.T @ v_l
         h = Cr - z_g.T @ Jr_g - z_l.T @ Jr_l
-        if conditional:
-            proj = proj - LA @ AA_inv @ LA.T
-            h = h + LA @ theta_given
-        scale = max(1.0, rr / max(dof, 1.0))
         g_b = None
         if bootstrap:  # block sums of (I - P) C (minus the given terms' share) times r
             g_b = GB - S_g @ z_g - np.asarray(S_l @ z_l)
             if conditional:
                 g_b -= (Gr @ given) @ (AA_inv @ LA.T)
+        del z_g, z_l  # (P_l, k): let go before the next solve forms its own, the cells' peak
+        # what the nominal parameters alone leave visible: the walks held still (the columns are
+        # zero on the walks' rows, so only the system differs)
+        v_g, v_l = rigid.solve(JgC, JlC)
+        visible = gram - JgC.T @ v_g - JlC.T @ v_l
+        del v_g, v_l
+        if conditional:
+            proj = proj - LA @ AA_inv @ LA.T
+            h = h + LA @ theta_given
+        scale = max(1.0, rr / max(dof, 1.0))
         scored = []
         for axes in [tuple(AXES)] + [(a,) for a in AXES]:
             sel = np.array([AXES[i] in axes for i, *_ in lib.columns])

@@ -342,9 +342,10 @@ class Bordered:
 
     def solve(self, g_g: np.ndarray, g_l: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(x_g, x_l)`` solving ``A [x_g; x_l] = [g_g; g_l]``."""
-        y = self.blocks.solve(g_l)
+        y = self.blocks.solve(g_l)  # a fresh array: x_l is formed in it (k columns of P_l each)
         x_g = cho_solve((self._S_chol, True), g_g - self.A_lg.T @ y) if len(self.S) else np.zeros(0)
-        return x_g, y - self.X @ x_g
+        y -= self.X @ x_g
+        return x_g, y
 
     def step(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The Gauss-Newton (or damped) step ``-A^-1 J^T r`` as ``(dx_g, dx_l)``."""
