@@ -280,6 +280,19 @@ def pad_turns(t: Sequence[np.ndarray], rate: Sequence[np.ndarray],
 TURN_CHUNK = 64  # turns integrated at once: a long recording's corrected rates are never all formed
 
 
+def _lengths(dt: np.ndarray) -> np.ndarray:
+    """(m,) each padded turn's samples through its last nonzero interval (1 for none)."""
+    if not dt.shape[1]:
+        return np.ones(len(dt), np.int64)
+    return np.where(dt.any(axis=1), dt.shape[1] - np.argmax(dt[:, ::-1] != 0, axis=1), 1)
+
+
+def _length_groups(length: np.ndarray) -> list[np.ndarray]:
+    """The indices of turns within a factor two in ``length``, group by group."""
+    group = np.ceil(np.log2(length)).astype(int)
+    return [np.flatnonzero(group == g) for g in np.unique(group)]
+
+
 def _turn_products(rate: np.ndarray, dt: np.ndarray, M: np.ndarray | None = None,
                    turns: np.ndarray | None = None) -> np.ndarray:
     """(m, 4) ``compose(quat_exp((rate @ M.T) * dt))`` of padded turns (``turns``: those alone,
@@ -288,15 +301,11 @@ def _turn_products(rate: np.ndarray, dt: np.ndarray, M: np.ndarray | None = None
     their padding. Padding is an exact identity factor, so the products are those of the whole
     padded arrays. ``TURN_CHUNK`` turns at a time: no copy of the (selected, corrected) rates."""
     turns = np.arange(len(dt)) if turns is None else np.asarray(turns, dtype=np.int64)
-    k = dt.shape[1]
     length = np.ones(len(turns), np.int64)
     for a in range(0, len(turns), TURN_CHUNK):
-        d = dt[turns[a:a + TURN_CHUNK]]
-        length[a:a + TURN_CHUNK] = np.where(d.any(axis=1), k - np.argmax(d[:, ::-1] != 0, axis=1), 1)
-    group = np.ceil(np.log2(length)).astype(int)
+        length[a:a + TURN_CHUNK] = _lengths(dt[turns[a:a + TURN_CHUNK]])
     out = np.empty((len(turns), 4))
-    for g in np.unique(group):
-        pos = np.flatnonzero(group == g)
+    for pos in _length_groups(length):
         n = int(length[pos].max())
         for a in range(0, len(pos), TURN_CHUNK):
             p = pos[a:a + TURN_CHUNK]
@@ -331,14 +340,8 @@ def _ragged_products(t: Sequence[np.ndarray], rate: Sequence[np.ndarray],
     padded alone, and its products are formed from the same rows: the same numbers."""
     m = len(t)
     out = np.empty((m, 4))
-    length = np.ones(m, np.int64)
-    for i, ti in enumerate(t):
-        d = intervals(np.asarray(ti, float)) != 0
-        if d.any():
-            length[i] = len(d) - np.argmax(d[::-1])
-    group = np.ceil(np.log2(length)).astype(int)
-    for g in np.unique(group):
-        idx = np.flatnonzero(group == g)
+    length = np.array([_lengths(intervals(np.asarray(ti, float))[None])[0] for ti in t], np.int64)
+    for idx in _length_groups(length):
         r, dt = pad_turns([t[i] for i in idx], [rate[i] for i in idx], intervals)
         if bias is not None:
             r -= np.broadcast_to(bias, (m, 3))[idx][:, None, :]
