@@ -10,11 +10,8 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import multiprocessing
 import os
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 from ..errors import ImupipeError, require
@@ -58,6 +55,8 @@ class LocalExecutor:
                 if on_result:
                     on_result(i, results[i])
             return results
+        import multiprocessing  # here: registering the executors is every command's (~7 ms)
+
         # spawn, not fork: a forked child of a process whose Arrow/Polars thread pools are
         # running can deadlock; spawned workers import ``fn`` by name instead
         context = multiprocessing.get_context("spawn")
@@ -69,6 +68,9 @@ class LocalExecutor:
 
 def _pool(fn, items, indices, jobs, results, on_result, context, last_try=False) -> list[int]:
     """Run ``items[indices]`` in one process pool; return those cut short by a dead worker."""
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
     broken = []
     with ProcessPoolExecutor(max_workers=min(jobs, len(indices)), mp_context=context) as pool:
         futures = {pool.submit(fn, items[i]): i for i in indices}

@@ -33,9 +33,9 @@ import pyarrow as pa
 import zstandard
 from isal.isal_zlib import crc32  # CRC-32 as zlib's, ~9x faster (SIMD)
 from mcap.exceptions import McapError
-from mcap.reader import NonSeekingReader, SeekingReader
 
 from .. import schemas
+from ..columns import arrow_column
 from ..components import Recording
 from ..errors import ReaderError, require
 from . import cdr
@@ -165,6 +165,8 @@ def _read_fast(f, path: Path, size: int, pieces: Pieces, other: set[str]) -> Non
         if crc32(covered) != summary_crc:
             raise ReaderError(f"{path}: the MCAP summary section is corrupt (CRC mismatch); "
                               f"{RECOVER}")
+    from mcap.reader import SeekingReader  # here: its import (~16 ms) is not every command's
+
     f.seek(0)
     summary = SeekingReader(f).get_summary()
     if summary is None or not summary.chunk_indexes:
@@ -371,6 +373,8 @@ def _read_generic(f, pieces: Pieces, other: set[str]) -> None:
     where = getattr(f, "name", "the MCAP file")
     decoder_module = require("mcap_ros2.decoder", "ros")
     factory = decoder_module.DecoderFactory()
+    from mcap.reader import NonSeekingReader
+
     f.seek(0)
     reader = NonSeekingReader(f, validate_crcs=True)  # one linear pass needs no index
     rows: dict[tuple[str, str], tuple[list, list, list]] = defaultdict(lambda: ([], [], []))
@@ -482,9 +486,9 @@ def _recording(path: Path, pieces: Pieces, other: set[str]) -> Recording:
         for stream, sink in pieces[key].items():
             if sink.n == 0:
                 continue  # e.g. an Imu topic whose messages all flag "no accelerometer"
-            columns = {"t_ns": sink.t[:sink.n]}
+            columns = {"t_ns": arrow_column(sink.t[:sink.n])}
             for j, name in enumerate(COLUMNS[stream]):
-                columns[name] = sink.v[j, :sink.n]
+                columns[name] = arrow_column(sink.v[j, :sink.n])
             devices[names[key]][stream] = schemas.stamp(pa.table(columns), stream, extra={
                 "imupipe.topic": key[0], "imupipe.frame_convention": FRAME_CONVENTION})
     return Recording(source=str(path), devices=dict(devices))

@@ -10,7 +10,18 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from imupipe.columns import MAX_RUNS, kept_rows, vectors
+from imupipe.columns import MAX_RUNS, arrow_column, kept_rows, vectors
+
+
+@pytest.mark.parametrize("values", [np.arange(5, dtype=np.int64), np.linspace(-1.0, 2.0, 7),
+                                    np.arange(12.0).reshape(3, 4)[1], np.arange(12.0).reshape(3, 4)[:, 2]])
+def test_arrow_column_is_pa_array_of_the_same_values(values):
+    """The same array as ``pa.array`` gives, over the numpy memory where it is contiguous (a
+    row of a 2-D array, as the MCAP reader passes), copied where it is strided."""
+    col = arrow_column(values)
+    assert col.equals(pa.array(values)) and col.type == pa.array(values).type
+    if values.flags.c_contiguous:
+        assert col.buffers()[1].address == values.ctypes.data
 
 
 def _table(n: int = 40) -> pa.Table:

@@ -65,7 +65,8 @@ def test_a_kind_is_registered_only_when_first_looked_up():
         "r = make_registry()\n"
         "assert 'mcap' in r.names('readers')\n"
         "heavy = [m for m in ('imupipe.solvers.joint_ml', 'imupipe.stages.refine', 'polars', 'pydantic',\n"
-        "                     'scipy.optimize', 'imupipe.diagnosis.residual_map') if m in sys.modules]\n"
+        "                     'scipy.optimize', 'imupipe.diagnosis.residual_map', 'mcap.reader',\n"
+        "                     'multiprocessing') if m in sys.modules]\n"
         "assert not heavy, heavy\n"
         "assert 'joint_ml' in r.names('solvers')\n"
         "assert 'imupipe.solvers.joint_ml' in sys.modules\n"
@@ -75,7 +76,8 @@ def test_a_kind_is_registered_only_when_first_looked_up():
         "# helper module listing no components, the joint fit's algebra, is not imported for it)\n"
         "heavy = [m for m in ('ruptures', 'matplotlib', 'distributed', 'scipy.optimize', 'scipy.linalg',\n"
         "                     'scipy.sparse', 'scipy.special', 'imupipe.solvers.blocktri',\n"
-        "                     'imupipe.diagnosis.residual_map') if m in sys.modules]\n"
+        "                     'imupipe.diagnosis.residual_map', 'mcap.reader', 'multiprocessing')\n"
+        "         if m in sys.modules]\n"
         "assert not heavy, heavy\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
@@ -83,7 +85,8 @@ def test_a_kind_is_registered_only_when_first_looked_up():
 
 def test_imu_tk_pipeline_runs_without_scipy_or_arrow_compute(shared_data, tmp_path):
     """imu_tk's pipeline (method B's solvers, the report) needs neither SciPy nor Arrow's compute
-    kernels: a run imports neither (their imports were a third of the whole process)."""
+    kernels: a run imports neither (their imports were a third of the whole process), nor, on
+    its text files, the MCAP library's reader."""
     root = Path(__file__).resolve().parents[2]
     code = (
         "import sys\n"
@@ -91,16 +94,19 @@ def test_imu_tk_pipeline_runs_without_scipy_or_arrow_compute(shared_data, tmp_pa
         f"status = cli.main(['run', {str(root / 'examples' / 'sessions' / 'imu_tk_xsens.toml')!r}, '--pipeline',\n"
         f"                   {str(root / 'pipelines' / 'imu_tk.toml')!r}, '--out', {str(tmp_path)!r}, '--quiet'])\n"
         "assert status == 0, status\n"
-        "loaded = [m for m in sys.modules if m in ('scipy', 'pyarrow.compute') or m.startswith('scipy.')]\n"
+        "loaded = [m for m in sys.modules if m in ('scipy', 'pyarrow.compute', 'mcap.reader')\n"
+        "          or m.startswith('scipy.')]\n"
         "assert not loaded, loaded\n"
     )
     proc = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
 
 
-def test_reading_a_recording_imports_neither_pydantic_nor_pyarrow_compute():
+def test_reading_a_recording_imports_only_what_it_uses():
     """``imupipe ingest``: the params' models and Arrow's compute kernels are a quarter of its
-    imports; a reader's tables come out in their schema's types without a cast."""
+    imports; a reader's tables come out in their schema's types without a cast, nor through
+    ``pa.array``'s check for masked arrays (it imports numpy.ma); the batch executors' process
+    pools are not loaded to register them."""
     example = Path(__file__).resolve().parents[2] / "examples" / "standard-session.mcap"
     code = (
         "import sys\n"
@@ -108,7 +114,7 @@ def test_reading_a_recording_imports_neither_pydantic_nor_pyarrow_compute():
         "from imupipe.plugins import make_registry\n"
         f"rec = read_recording({str(example)!r}, make_registry())\n"
         "assert rec.device()['accel'].num_rows > 0\n"
-        "heavy = [m for m in ('pydantic', 'pyarrow.compute') if m in sys.modules]\n"
+        "heavy = [m for m in ('pydantic', 'pyarrow.compute', 'numpy.ma', 'multiprocessing') if m in sys.modules]\n"
         "assert not heavy, heavy\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
