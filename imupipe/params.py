@@ -10,9 +10,11 @@ from pydantic import AfterValidator, BaseModel, ConfigDict
 
 
 class Params(BaseModel):
-    """Base for every params object: frozen, unknown keys rejected."""
+    """Base for every params object: frozen, unknown keys rejected. Each model's validator is
+    built when it first validates (``defer_build``): registering the stages and solvers defines
+    ~37 models, of which imu_tk's pipeline validates 8 (~13 ms of its run)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", defer_build=True)
 
 
 class NoParams(Params):
