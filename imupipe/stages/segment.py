@@ -213,10 +213,12 @@ class Detection:
         self.sigma = {key: self._core_sigma(x) for key, x in
                       (("accel", la), ("gyro", lw), ("accel_raw", sa), ("gyro_raw", sw))}
         # holds that tremble (4-8 Hz, hand-held) put their edges on the low-passed signals
-        white = np.random.default_rng(0).standard_normal((min(len(t_s), 4000), 3))
-        tw = t_s[: len(white)]
-        white_ratio = np.median(box_mean(tw, white, EDGE_MEAN_S).std(axis=0)
-                                / lowpass(tw, white, p.lowpass_s).std(axis=0)) if p.lowpass_s > 0 else 1.0
+        white_ratio = 1.0  # the two filters' spread ratio on white noise (still, unfiltered: 1)
+        if p.lowpass_s > 0:
+            white = np.random.default_rng(0).standard_normal((min(len(t_s), 4000), 3))
+            tw = t_s[: len(white)]
+            white_ratio = np.median(box_mean(tw, white, EDGE_MEAN_S).std(axis=0)
+                                    / lowpass(tw, white, p.lowpass_s).std(axis=0))
         ratio = {s: float(np.median(self.sigma[s + "_raw"] / self.sigma[s])) for s in ("accel", "gyro")}
         self.vibrating = bool(p.lowpass_s > 0 and max(ratio.values()) > VIBRATION_RATIO * white_ratio)
         self.vibration_ratio = {s: r / white_ratio for s, r in ratio.items()}
