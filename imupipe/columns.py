@@ -11,9 +11,10 @@ MAX_RUNS = 64  # runs of kept rows above which ``kept_rows`` leaves the work to 
 
 
 def arrow_column(values: np.ndarray) -> pa.Array:
-    """A 1-D numeric numpy array as an Arrow array over the same memory (a copy only when it is
-    strided), without ``pa.array``'s masked-array check: its first use imports numpy.ma (~17 ms,
-    3 % of ``imupipe ingest`` of a 1 h recording)."""
+    """A 1-D integer or floating numpy array (not bool: Arrow packs those into bits) as an Arrow
+    array over the same memory (a copy only when it is strided), without ``pa.array``'s
+    masked-array check: its first use imports numpy.ma (~17 ms, 3 % of ``imupipe ingest`` of a
+    1 h recording)."""
     values = np.ascontiguousarray(values)
     return pa.Array.from_buffers(pa.from_numpy_dtype(values.dtype), len(values), [None, pa.py_buffer(values)])
 
