@@ -267,13 +267,18 @@ def pad_turns(t: Sequence[np.ndarray], rate: Sequence[np.ndarray],
     the time each sample stands for (``centred_intervals`` or ``hold_intervals``).
     Padded samples have ``dt = 0`` and so rotate by nothing.
     """
+    return _padded(rate, [intervals(ti) for ti in t])
+
+
+def _padded(rate: Sequence[np.ndarray], dts: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """``pad_turns`` of turns whose intervals ``dts`` are already formed."""
     m = len(rate)
     k_max = max((len(w) for w in rate), default=0)
     w_pad = np.zeros((m, max(k_max, 1), 3))
     dt_pad = np.zeros((m, max(k_max, 1)))
-    for i, (ti, wi) in enumerate(zip(t, rate, strict=True)):
+    for i, (wi, di) in enumerate(zip(rate, dts, strict=True)):
         w_pad[i, : len(wi)] = wi
-        dt_pad[i, : len(wi)] = intervals(ti)
+        dt_pad[i, : len(wi)] = di
     return w_pad, dt_pad
 
 
@@ -340,9 +345,10 @@ def _ragged_products(t: Sequence[np.ndarray], rate: Sequence[np.ndarray],
     padded alone, and its products are formed from the same rows: the same numbers."""
     m = len(t)
     out = np.empty((m, 4))
-    length = np.array([_lengths(intervals(np.asarray(ti, float))[None])[0] for ti in t], np.int64)
+    dts = [intervals(ti) for ti in t]  # once: they give the lengths and are the padded intervals
+    length = np.array([_lengths(d[None])[0] for d in dts], np.int64)
     for idx in _length_groups(length):
-        r, dt = pad_turns([t[i] for i in idx], [rate[i] for i in idx], intervals)
+        r, dt = _padded([rate[i] for i in idx], [dts[i] for i in idx])
         if bias is not None:
             r -= np.broadcast_to(bias, (m, 3))[idx][:, None, :]
         out[idx] = _turn_products(r, dt, M)
