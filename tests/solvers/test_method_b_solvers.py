@@ -11,10 +11,10 @@ from imupipe.observations import EllipsoidObservations, GyroObservations, Turns
 from imupipe.rotations import (
     centred_intervals,
     compose,
+    hold_intervals,
     pad_turns,
     quat_exp,
     quat_mul,
-    hold_intervals,
     quat_to_matrix,
     ragged_turn_quaternions,
     ragged_turn_rotations,
